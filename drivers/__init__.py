@@ -1,0 +1,1 @@
+"""Device drivers (protocol adapters) for the servo controller and the CMM."""

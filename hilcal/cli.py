@@ -1,0 +1,254 @@
+"""The `hilcal` command line: identify, identifiability, design, simulate, demo.
+
+Exit codes: 0 ok, 2 bad input (robot file, recording, options). Units: mm and degrees.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import tempfile
+from enum import StrEnum
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import structlog
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from hilcal.calibration import CalibrationOutcome, calibrate
+from hilcal.identification import IdentificationError
+from hilcal.kinematics import KinematicsError
+from hilcal.metrics import AccuracySummary
+from hilcal.recording import RecordingError, read_recording, write_recording
+from hilcal.robot import Robot, RobotFileError, load_robot
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
+out = Console(width=None if sys.stdout.isatty() else 120)
+err = Console(stderr=True)
+
+BAD_INPUT = 2
+
+
+class EstimatorChoice(StrEnum):
+    ls = "ls"
+    linf = "linf"
+
+
+class ModelChoice(StrEnum):
+    m42 = "42"
+    m60 = "60"
+
+
+RobotOption = Annotated[Path | None, typer.Option("--robot", help="robot TOML file (default: paper Table 1)")]
+
+
+def _fail(message: str) -> None:
+    err.print(f"[bold red]error:[/] {message}", highlight=False)
+    raise typer.Exit(BAD_INPUT)
+
+
+def _robot(path: Path | None) -> Robot:
+    try:
+        return load_robot(path)
+    except RobotFileError as e:
+        _fail(str(e))
+        raise  # unreachable: _fail exits
+
+
+@app.callback()
+def main(verbose: Annotated[bool, typer.Option("--verbose", "-v", help="structured logs on stderr")] = False) -> None:
+    """hilcal: kinematic calibration of 6-6 Gough/Stewart platforms (LS and L-infinity)."""
+    structlog.configure(
+        wrapper_class=structlog.make_filtering_bound_logger(logging.INFO if verbose else logging.WARNING),
+        logger_factory=structlog.PrintLoggerFactory(sys.stderr),
+    )
+
+
+def _accuracy_table(title: str, columns: list[tuple[str, AccuracySummary | None]]) -> Table:
+    """The paper's Table 7 layout: indicators as rows, (position, orientation) per condition as columns."""
+    table = Table(title=title)
+    table.add_column("indicator")
+    for label, _ in columns:
+        table.add_column(f"{label}\npos mm", justify="right")
+        table.add_column(f"{label}\nori deg", justify="right")
+    for indicator in ("max", "range", "mean", "rms"):
+        cells = []
+        for _, summary in columns:
+            if summary is None:
+                cells += ["n/a", "n/a"]
+            else:
+                cells += [f"{getattr(summary.position_mm, indicator):.4f}",
+                          f"{getattr(summary.orientation_deg, indicator):.5f}"]
+        table.add_row({"max": "maximum", "range": "range", "mean": "average", "rms": "RMS"}[indicator], *cells)
+    return table
+
+
+def _parameter_table(outcome: CalibrationOutcome) -> Table:
+    ident = outcome.identification
+    table = Table(title=f"Identified errors ({ident.model}-parameter model, {ident.estimator}, {ident.formulation})")
+    table.add_column("parameter")
+    table.add_column("value", justify="right")
+    table.add_column("std error", justify="right")
+    std = ident.std_errors if ident.std_errors is not None else [None] * len(ident.names)
+    for name, value, s in zip(ident.names, ident.x, std, strict=True):
+        table.add_row(name, f"{value:+.4f}", "" if s is None else f"{s:.4f}")
+    return table
+
+
+@app.command()
+def identify(
+    recording: Annotated[Path, typer.Argument(help="recording CSV")],
+    robot: RobotOption = None,
+    estimator: Annotated[EstimatorChoice, typer.Option(help="least squares or L-infinity (minimax)")] = (
+        EstimatorChoice.ls
+    ),
+    model: Annotated[ModelChoice, typer.Option(help="42 rigid parameters, or the paper's 60 (linear)")] = (
+        ModelChoice.m42
+    ),
+    formulation: Annotated[str, typer.Option(help="forward (pose error) or implicit (leg-length error)")] = "forward",
+    method: Annotated[str, typer.Option(help="iterated (nonlinear) or one_step (paper's linearization)")] = "",
+    as_json: Annotated[bool, typer.Option("--json", help="print one JSON object")] = False,
+) -> None:
+    """Identify geometric errors on the `measure` rows; report accuracy on the `verify` rows."""
+    rb = _robot(robot)
+    n_params = 60 if model == ModelChoice.m60 else 42
+    chosen_method = method or ("one_step" if model == ModelChoice.m60 else "iterated")
+    try:
+        rec = read_recording(recording, rb, min_measure_rows=n_params // 6 + 1)
+        outcome = calibrate(rec, rb, estimator=estimator.value, model=model.value, formulation=formulation,
+                            method=chosen_method)
+    except (RecordingError, IdentificationError, KinematicsError) as e:
+        _fail(str(e))
+    if as_json:
+        print(json.dumps(outcome.to_json(), indent=2))
+        return
+    out.print(_parameter_table(outcome))
+    out.print(_accuracy_table(
+        f"{recording.name}: {outcome.n_measure} measure rows, {outcome.n_verify} verify rows",
+        [("before", outcome.before), (f"after {estimator.value}", outcome.after)],
+    ))
+    ident = outcome.identification
+    out.print(f"fit: max |residual| {ident.max_abs_residual:.4f} mm, RMS {ident.rms_residual:.4f} mm, "
+              f"{ident.n_iterations} evaluations, converged={ident.converged}")
+
+
+def _pose_set(rb: Robot, recording: Path | None, design_name: str, seed: int) -> np.ndarray:
+    from hilcal import design
+
+    if recording is not None:
+        try:
+            return read_recording(recording, rb, min_measure_rows=1).select("measure").meas
+        except RecordingError as e:
+            _fail(str(e))
+    sets = design.paper_pose_sets(rb, seed)
+    if design_name not in sets:
+        _fail(f"unknown pose set {design_name!r}: choose one of {', '.join(sets)}")
+    return sets[design_name].poses
+
+
+@app.command()
+def identifiability(
+    model: Annotated[ModelChoice, typer.Option(help="42 rigid parameters or the paper's 60")] = ModelChoice.m42,
+    robot: RobotOption = None,
+    recording: Annotated[Path | None, typer.Option(help="use this recording's measure poses")] = None,
+    pose_set: Annotated[str, typer.Option(help="or one of the paper's four pose sets")] = "set3_factorial_exchange32",
+    seed: int = 0,
+) -> None:
+    """Rank, condition number and unidentifiable directions of an error model over a pose set."""
+    from hilcal.identifiability import format_report
+    from hilcal.identifiability import identifiability as analyse
+
+    rb = _robot(robot)
+    poses = _pose_set(rb, recording, pose_set, seed)
+    out.print(format_report(analyse(rb, poses, model.value)), highlight=False)
+
+
+@app.command()
+def design(
+    robot: RobotOption = None,
+    seed: int = 0,
+    out_csv: Annotated[Path | None, typer.Option("--out", help="write the chosen pose set as CSV")] = None,
+    pose_set: Annotated[str, typer.Option(help="pose set written by --out")] = "set3_factorial_exchange32",
+) -> None:
+    """D-optimal measurement poses: the paper's four pose sets with log-det, D-efficiency, condition."""
+    from hilcal import design as dsg
+
+    rb = _robot(robot)
+    sets = dsg.paper_pose_sets(rb, seed)
+    out.print(dsg.design_report(list(sets.values())), highlight=False)
+    if out_csv is not None:
+        if pose_set not in sets:
+            _fail(f"unknown pose set {pose_set!r}: choose one of {', '.join(sets)}")
+        header = "x_mm,y_mm,z_mm,roll_deg,pitch_deg,yaw_deg"
+        np.savetxt(out_csv, sets[pose_set].poses, delimiter=",", header=header, comments="", fmt="%.6f")
+        out.print(f"wrote {len(sets[pose_set].poses)} poses of {pose_set} to {out_csv}")
+
+
+def _simulate(rb: Robot, out_path: Path, seed: int, errors: str, noise_mm: float) -> None:
+    from hilcal import design as dsg
+    from procedures.simulated_recording import simulate_recording
+    from sim_devices.config import RigConfig, load_errors
+
+    try:
+        config = RigConfig(seed=seed, errors=load_errors(errors, rb), cmm_noise_mm=noise_mm)
+    except (ValueError, OSError) as e:
+        _fail(f"--errors {errors}: {e}")
+    rng = np.random.default_rng(seed)
+    measure = dsg.factorial_exchange(rb, 32, rng).poses
+    verify = dsg.verification_poses(rb, 24, seed)
+    write_recording(out_path, simulate_recording(rb, config, measure, verify))
+
+
+@app.command()
+def simulate(
+    out_path: Annotated[Path, typer.Option("--out", help="recording CSV to write")],
+    seed: int = 0,
+    errors: Annotated[str, typer.Option(help="errors TOML file or table2|table3|table4|table5|zero")] = "table2",
+    noise_mm: Annotated[float, typer.Option("--noise-mm", help="CMM noise std per sphere coordinate, mm")] = 0.005,
+    robot: RobotOption = None,
+) -> None:
+    """Write a recording from the in-process simulated rig (32 D-optimal + 24 verification poses)."""
+    if noise_mm < 0:
+        _fail("--noise-mm must be >= 0")
+    rb = _robot(robot)
+    _simulate(rb, out_path, seed, errors, noise_mm)
+    out.print(f"wrote {out_path}")
+
+
+@app.command()
+def demo(
+    seed: int = 0,
+    out_dir: Annotated[Path | None, typer.Option("--out", help="keep the recording in this folder")] = None,
+) -> None:
+    """Simulate a rig with the paper's Table 2 errors, calibrate with LS and L-infinity, print the table."""
+    rb = _robot(None)
+    folder = out_dir or Path(tempfile.mkdtemp(prefix="hilcal-demo-"))
+    folder.mkdir(parents=True, exist_ok=True)
+    rec_path = folder / "recording.csv"
+    with out.status("simulating 56 poses on the simulated rig"):
+        _simulate(rb, rec_path, seed, "table2", 0.005)
+    rec = read_recording(rec_path, rb)
+    from hilcal.kinematics import Geometry, forward_kinematics
+    from sim_devices.config import load_errors
+
+    ver = rec.select("verify")
+    truth = Geometry.nominal(rb).perturbed(load_errors("table2", rb).to_vector())
+    floor = AccuracySummary.of(ver.meas, forward_kinematics(truth, ver.legs_mm, ver.meas))
+    columns: list[tuple[str, AccuracySummary | None]] = []
+    for est in ("ls", "linf"):
+        with out.status(f"identifying ({est})"):
+            outcome = calibrate(rec, rb, estimator=est)
+        if not columns:
+            columns.append(("before", outcome.before))
+        columns.append((f"after {est}", outcome.after))
+    columns.append(("true geom.", floor))
+    out.print(_accuracy_table(f"Verification errors, simulated rig, Table 2 errors (seed {seed})", columns))
+    out.print(f"recording: {rec_path}\n'true geom.' = the rig's true parameters, i.e. the CMM-noise floor.")
+
+
+if __name__ == "__main__":
+    app()

@@ -1,0 +1,1 @@
+"""Procedures: plans that orchestrate drivers and the hilcal core."""
