@@ -1,0 +1,100 @@
+"""Platform pose from CMM-measured sphere centres, by rigid registration of the known sphere layouts.
+
+The CMM frame is arbitrary: registering the base spheres gives T_cmm<-base, registering the platform spheres
+gives T_cmm<-platform, and the pose is T_base<-platform = inv(T_cmm<-base) T_cmm<-platform, so the CMM's
+placement cancels. Poses are [x, y, z mm, roll, pitch, yaw deg] with R = Rz(yaw) Ry(pitch) Rx(roll).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hilcal.robot import Robot
+
+
+@dataclass(frozen=True)
+class PoseFit:
+    """Measured pose(s) and the quality of the two registrations behind each."""
+
+    pose: np.ndarray
+    """(6,) or (N, 6): [x, y, z mm, roll, pitch, yaw deg] of the platform frame in the base frame."""
+    rms_residual_mm: np.ndarray
+    """(2,) or (N, 2): RMS sphere-centre residual of the [platform, base] registration, mm."""
+
+    @property
+    def platform_rms_mm(self) -> np.ndarray | float:
+        """RMS residual of the platform-sphere registration, mm."""
+        return self.rms_residual_mm[..., 0]
+
+    @property
+    def base_rms_mm(self) -> np.ndarray | float:
+        """RMS residual of the base-sphere registration, mm."""
+        return self.rms_residual_mm[..., 1]
+
+
+def pose_from_matrix(R: np.ndarray, t_mm: np.ndarray) -> np.ndarray:
+    """[x, y, z mm, roll, pitch, yaw deg] of rotation(s) (..., 3, 3) and translation(s) (..., 3)."""
+    R = np.asarray(R, dtype=float)
+    t = np.asarray(t_mm, dtype=float)
+    roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    pitch = -np.arcsin(np.clip(R[..., 2, 0], -1.0, 1.0))
+    yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    return np.concatenate([t, np.degrees(np.stack([roll, pitch, yaw], axis=-1))], axis=-1)
+
+
+def rigid_fit(model: np.ndarray, measured: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares rigid transform with measured ~ R model + t (Kabsch/SVD), batched over leading axes.
+
+    Returns (R (..., 3, 3), t (..., 3), rms residual (...) in the units of the points).
+    """
+    p = np.asarray(model, dtype=float)
+    q = np.asarray(measured, dtype=float)
+    p_mean = p.mean(axis=-2, keepdims=True)
+    q_mean = q.mean(axis=-2, keepdims=True)
+    H = np.swapaxes(p - p_mean, -1, -2) @ (q - q_mean)
+    U, _, Vt = np.linalg.svd(H)
+    V = np.swapaxes(Vt, -1, -2)
+    d = np.sign(np.linalg.det(V @ np.swapaxes(U, -1, -2)))
+    D = np.zeros((*d.shape, 3, 3))
+    D[..., 0, 0] = 1.0
+    D[..., 1, 1] = 1.0
+    D[..., 2, 2] = d
+    R = V @ D @ np.swapaxes(U, -1, -2)
+    t = q_mean[..., 0, :] - np.einsum("...ij,...j->...i", R, p_mean[..., 0, :])
+    fitted = np.einsum("...ij,...kj->...ki", R, p) + t[..., None, :]
+    rms = np.sqrt(np.mean(np.sum((fitted - q) ** 2, axis=-1), axis=-1))
+    return R, t, rms
+
+
+def _check_measured(name: str, measured: np.ndarray, layout: np.ndarray) -> np.ndarray:
+    """Measured centres as a float array shaped like the robot's sphere layout (optionally batched)."""
+    m = np.asarray(measured, dtype=float)
+    k = layout.shape[0]
+    if m.shape[-2:] != (k, 3) or m.ndim not in (2, 3):
+        raise ValueError(f"{name} must have shape ({k}, 3) or (N, {k}, 3) like the robot file; got {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise ValueError(f"{name} contains NaN or infinite coordinates")
+    return m
+
+
+def pose_from_spheres(platform_measured: np.ndarray, base_measured: np.ndarray, robot: Robot) -> PoseFit:
+    """Platform pose(s) in the base frame from sphere centres measured in any CMM frame (mm, deg).
+
+    Accepts one measurement ((M, 3), (K, 3)) or a batch ((N, M, 3), (N, K, 3)), sphere order as in the robot
+    file; M, K are the robot's numbers of platform and base spheres.
+    """
+    plat = _check_measured("platform_measured", platform_measured, robot.platform_spheres)
+    base = _check_measured("base_measured", base_measured, robot.base_spheres)
+    if (plat.ndim == 3) != (base.ndim == 3) or (plat.ndim == 3 and plat.shape[0] != base.shape[0]):
+        raise ValueError(
+            f"platform_measured {plat.shape} and base_measured {base.shape} must both be single measurements "
+            "or batches of the same length"
+        )
+    R_cp, t_cp, rms_p = rigid_fit(robot.platform_spheres, plat)
+    R_cb, t_cb, rms_b = rigid_fit(robot.base_spheres, base)
+    R_cb_T = np.swapaxes(R_cb, -1, -2)
+    R = R_cb_T @ R_cp
+    t = np.einsum("...ij,...j->...i", R_cb_T, t_cp - t_cb)
+    return PoseFit(pose=pose_from_matrix(R, t), rms_residual_mm=np.stack([rms_p, rms_b], axis=-1))
