@@ -1,0 +1,82 @@
+"""The CLI contract: simulate -> identify --json, and exit code 2 with a clear message on bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from hilcal.cli import app
+
+runner = CliRunner()
+KEYS = {"max_position_mm", "rms_position_mm", "max_orientation_deg", "rms_orientation_deg"}
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("cli") / "rec.csv"
+    result = runner.invoke(app, ["simulate", "--out", str(path), "--seed", "3"])
+    assert result.exit_code == 0, result.output
+    return path
+
+
+@pytest.mark.parametrize("estimator", ["ls", "linf"])
+def test_identify_json_contract(recording, estimator):
+    result = runner.invoke(app, ["identify", str(recording), "--estimator", estimator, "--json"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout)
+    assert data["estimator"] == estimator
+    assert (data["n_measure"], data["n_verify"]) == (32, 24)
+    assert len(data["parameters"]) == 42 and "leg1_dl0_mm" in data["parameters"]
+    assert set(data["before"]) == KEYS and set(data["after"]) == KEYS
+    assert data["before"]["max_position_mm"] > 1.0
+    assert data["after"]["max_position_mm"] < 0.05
+
+
+def test_identify_table_output(recording):
+    result = runner.invoke(app, ["identify", str(recording)])
+    assert result.exit_code == 0, result.output
+    assert "leg6_dl0_mm" in result.stdout and "maximum" in result.stdout
+
+
+def test_unknown_commanded_pose_gives_null_before(recording, tmp_path):
+    lines = recording.read_text().splitlines()
+    header = lines[0].split(",")
+    cmd_cols = [i for i, name in enumerate(header) if name.startswith("cmd_")]
+    rows = []
+    for line in lines[1:]:
+        cells = line.split(",")
+        for i in cmd_cols:
+            cells[i] = ""
+        rows.append(",".join(cells))
+    blind = tmp_path / "no_cmd.csv"
+    blind.write_text("\n".join([lines[0], *rows]) + "\n")
+    result = runner.invoke(app, ["identify", str(blind), "--json"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout)
+    assert data["before"] is None and set(data["after"]) == KEYS
+
+
+def test_bad_recording_exit_2(recording, tmp_path):
+    lines = recording.read_text().splitlines()
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join([lines[0], lines[1], lines[1], *lines[2:]]) + "\n")
+    result = runner.invoke(app, ["identify", str(bad), "--json"])
+    assert result.exit_code == 2
+    assert "seq" in result.output and "line 3" in result.output
+
+
+def test_missing_file_and_bad_robot_exit_2(recording, tmp_path):
+    assert runner.invoke(app, ["identify", str(tmp_path / "nope.csv")]).exit_code == 2
+    robot = tmp_path / "robot.toml"
+    robot.write_text("name = 'x'\n")
+    result = runner.invoke(app, ["identify", str(recording), "--robot", str(robot)])
+    assert result.exit_code == 2 and "legs" in result.output
+
+
+def test_identifiability_command_reports_paper_model_rank():
+    result = runner.invoke(app, ["identifiability", "--model", "60"])
+    assert result.exit_code == 0, result.output
+    assert "rank: 36 of 60" in result.stdout
