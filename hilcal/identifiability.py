@@ -81,7 +81,8 @@ def leg_axis_modes(robot: Robot, poses: np.ndarray) -> list[tuple[str, np.ndarra
         axis /= np.linalg.norm(axis)
         axis_platform = np.einsum("nji,nj->i", R, u[:, i]) / len(poses)
         axis_platform /= np.linalg.norm(axis_platform)
-        for joint, vec, cols in (("base joint b", axis, slice(3, 6)), ("platform joint a", -axis_platform, slice(0, 3))):
+        slides = (("base joint b", axis, slice(3, 6)), ("platform joint a", -axis_platform, slice(0, 3)))
+        for joint, vec, cols in slides:
             m = np.zeros(42)
             m[7 * i + cols.start : 7 * i + cols.stop] = vec
             m[7 * i + 6] = -1.0
@@ -98,16 +99,21 @@ def _explain_weak(
     basis = Vt[rank - n_weak : rank]
     R, t = split_pose(poses)
     _, _, u = leg_vectors(Geometry.nominal(robot), R, t)
-    out = []
+    shares: dict[int, list[str]] = {}
     for label, m in leg_axis_modes(robot, poses):
         ms = m * c
         inside = float(np.linalg.norm(basis @ ms) / np.linalg.norm(ms))
         if inside > 0.7:
             i = int(label.split()[1].rstrip(":")) - 1
-            axis = u[:, i].mean(axis=0)
-            spread = np.degrees(np.max(np.arccos(np.clip(u[:, i] @ axis / np.linalg.norm(axis), -1, 1))))
-            out.append(f"{label}: {100 * inside:.0f}% inside the weak subspace (leg direction varies only "
-                       f"{spread:.1f} deg over these poses, so lengths barely tell the two apart)")
+            joint = label.split(": ")[1].split(" along")[0]
+            shares.setdefault(i, []).append(f"{joint} {100 * inside:.0f}%")
+    out = []
+    for i, parts in shares.items():
+        axis = u[:, i].mean(axis=0)
+        spread = np.degrees(np.max(np.arccos(np.clip(u[:, i] @ axis / np.linalg.norm(axis), -1, 1))))
+        out.append(f"leg {i + 1}: sliding a joint along the leg axis while changing dl0 by the same amount "
+                   f"({', '.join(parts)} inside the weak subspace); the leg direction varies only {spread:.1f} deg "
+                   "over these poses, so leg lengths barely tell the two apart")
     return tuple(out)
 
 
@@ -138,7 +144,7 @@ def identifiability(
         cols = [j for j, n in enumerate(spec.names) if _group(n) == g]
         sg = np.linalg.svd(J[:, cols] / c[cols], compute_uv=False)
         group_ranks[g] = int(np.sum(sg > sg[0] * RANK_TOL))
-    cond = float(s[0] / s[rank - 1]) if rank == spec.size else float("inf")
+    cond = float(s[0] / s[rank - 1])
     return IdentifiabilityReport(
         model=model, n_poses=int(np.atleast_2d(poses).shape[0]), n_params=spec.size, rank=rank,
         condition_number=cond, singular_values=rel, unidentifiable=directions(null), weak=directions(weak),
