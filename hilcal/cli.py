@@ -64,7 +64,7 @@ def main(verbose: Annotated[bool, typer.Option("--verbose", "-v", help="structur
     """hilcal: kinematic calibration of 6-6 Gough/Stewart platforms (LS and L-infinity)."""
     structlog.configure(
         wrapper_class=structlog.make_filtering_bound_logger(logging.INFO if verbose else logging.WARNING),
-        logger_factory=structlog.PrintLoggerFactory(sys.stderr),
+        logger_factory=lambda *_: structlog.PrintLogger(sys.stderr),
     )
 
 

@@ -4,9 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import structlog
 
 from hilcal.kinematics import Geometry, inverse_kinematics
 from hilcal.robot import Robot, default_robot
+
+
+@pytest.fixture(autouse=True)
+def _reset_structlog():
+    """The CLI configures structlog for its own stderr; give every test the library defaults back."""
+    yield
+    structlog.reset_defaults()
 
 
 @pytest.fixture(scope="session")
