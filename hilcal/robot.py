@@ -100,6 +100,7 @@ class CmmSpec(_Strict):
 
     platform_spheres_mm: Annotated[list[Vec3], Field(min_length=3)]
     base_spheres_mm: Annotated[list[Vec3], Field(min_length=3)]
+    sphere_radius_mm: float = Field(default=12.7, gt=0, description="radius of the tooling spheres")
 
     @field_validator("platform_spheres_mm", "base_spheres_mm")
     @classmethod
@@ -225,6 +226,10 @@ class Robot:
     @property
     def base_spheres(self) -> np.ndarray:
         return np.array(self.spec.cmm.base_spheres_mm, dtype=float)
+
+    @property
+    def sphere_radius_mm(self) -> float:
+        return self.spec.cmm.sphere_radius_mm
 
     @property
     def characteristic_length_mm(self) -> float:
