@@ -1,0 +1,34 @@
+"""Run every benchmark: bench_core, then paper_study (``make bench``). ``--quick`` is passed through.
+
+Each script runs in its own interpreter so one cannot leak state (plot backends, logging) into the other.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+SCRIPTS = ("bench_core.py", "paper_study.py")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="reduced runs, passed to every benchmark")
+    args = parser.parse_args(argv)
+    extra = ["--quick"] if args.quick else []
+    for script in SCRIPTS:
+        t0 = time.perf_counter()
+        done = subprocess.run([sys.executable, str(HERE / script), *extra], check=False)
+        print(f"{script}: exit {done.returncode} after {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+        if done.returncode != 0:
+            return done.returncode
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
