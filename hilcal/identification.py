@@ -71,7 +71,7 @@ class IdentificationResult:
         """The calibrated rigid geometry (42-parameter model only)."""
         if self.model != GEOMETRIC_42.key:
             raise IdentificationError("only the rigid 42-parameter model defines a calibrated geometry")
-        return Geometry.nominal(robot).perturbed(self.x)
+        return Geometry.nominal(robot).perturbed(self.x[: GEOMETRIC_42.size])
 
 
 def _check_data(legs_mm: np.ndarray, poses: np.ndarray, n_params: int) -> tuple[np.ndarray, np.ndarray]:
@@ -90,21 +90,38 @@ def _check_data(legs_mm: np.ndarray, poses: np.ndarray, n_params: int) -> tuple[
 
 
 def residual_function(
-    robot: Robot, legs_mm: np.ndarray, poses: np.ndarray, formulation: Formulation, length_mm: float
+    robot: Robot,
+    legs_mm: np.ndarray,
+    poses: np.ndarray,
+    formulation: Formulation,
+    length_mm: float,
+    extra: np.ndarray | None = None,
 ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """r(dp), dr/dp for the 42-parameter model: stacked residuals (mm) and their Jacobian."""
+    """r(x), dr/dx for the 42-parameter model, optionally with extra leg-length terms.
+
+    `extra` [N, 6, q] holds regressors phi of effects that are linear in their parameters theta: the
+    geometric leg length becomes reported + dl0 + phi @ theta, and x = [42 geometric errors, theta].
+    """
     nominal = Geometry.nominal(robot)
+    n_geo = GEOMETRIC_42.size
+    phi = np.zeros((*np.shape(legs_mm), 0)) if extra is None else np.asarray(extra, dtype=float)
+    dl0_cols = [7 * i + 6 for i in range(6)]
 
-    def forward(dp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        geom = nominal.perturbed(dp)
-        predicted = forward_kinematics(geom, legs_mm, poses)
+    def corrected(x: np.ndarray) -> tuple[Geometry, np.ndarray]:
+        return nominal.perturbed(x[:n_geo]), legs_mm + phi @ x[n_geo:]
+
+    def forward(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        geom, lengths = corrected(x)
+        predicted = forward_kinematics(geom, lengths, poses)
         r = pose_difference(poses, predicted, length_mm).reshape(-1)
-        return r, -forward_jacobian(geom, predicted, length_mm).reshape(-1, GEOMETRIC_42.size)
+        J = forward_jacobian(geom, predicted, length_mm)
+        J_extra = J[..., dl0_cols] @ phi
+        return r, -np.concatenate([J, J_extra], axis=-1).reshape(r.size, -1)
 
-    def implicit(dp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        geom = nominal.perturbed(dp)
-        r = implicit_residuals(geom, legs_mm, poses).reshape(-1)
-        return r, implicit_jacobian(geom, poses).reshape(-1, GEOMETRIC_42.size)
+    def implicit(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        geom, lengths = corrected(x)
+        r = implicit_residuals(geom, lengths, poses).reshape(-1)
+        return r, np.concatenate([implicit_jacobian(geom, poses), -phi], axis=-1).reshape(r.size, -1)
 
     if formulation == "forward":
         return forward
@@ -237,11 +254,15 @@ def identify(
     length_mm: float | None = None,
     max_iter: int = 100,
     tol: float = 1e-9,
+    extra_regressors: np.ndarray | None = None,
+    extra_names: tuple[str, ...] = (),
 ) -> IdentificationResult:
     """Identify geometric errors from reported leg lengths and measured poses (mm, deg).
 
     `length_mm` converts rotation residuals (rad) to mm; default: the platform's characteristic
     length. The paper's 60-parameter model is linear, so it supports the forward one-step method only.
+    `extra_regressors` [N, 6, q] adds effects linear in their parameters (named by `extra_names`) to the
+    rigid model: geometric length = reported + dl0 + phi @ theta.
     """
     if model not in MODELS:
         raise IdentificationError(f"unknown model {model!r}: use one of {sorted(MODELS)}")
@@ -250,7 +271,14 @@ def identify(
     if method not in ("iterated", "one_step"):
         raise IdentificationError(f"unknown method {method!r}: use 'iterated' or 'one_step'")
     spec = MODELS[model]
-    L, q = _check_data(legs_mm, poses, spec.size)
+    names = spec.names
+    if extra_regressors is not None:
+        if model != GEOMETRIC_42.key:
+            raise IdentificationError("extra effects can only be added to the rigid 42-parameter model")
+        if np.shape(extra_regressors)[:2] != np.shape(legs_mm) or len(extra_names) != np.shape(extra_regressors)[2]:
+            raise IdentificationError("extra_regressors must be [N, 6, q] with q names")
+        names = names + tuple(extra_names)
+    L, q = _check_data(legs_mm, poses, len(names))
     lc = robot.characteristic_length_mm if length_mm is None else float(length_mm)
     if model == "60":
         if formulation != "forward" or method != "one_step":
@@ -258,17 +286,17 @@ def identify(
                                       "method=one_step")
         fun = _paper60_linear(robot, L, q, lc)
     else:
-        fun = residual_function(robot, L, q, formulation, lc)
+        fun = residual_function(robot, L, q, formulation, lc, extra_regressors)
     if estimator == "ls":
-        x, nit, converged, message = _identify_ls(fun, spec.size, method, max_nfev=max_iter)
+        x, nit, converged, message = _identify_ls(fun, len(names), method, max_nfev=max_iter)
     else:
-        x, nit, converged, message = _identify_linf(fun, spec.size, method, max_iter, tol)
+        x, nit, converged, message = _identify_linf(fun, len(names), method, max_iter, tol)
     r, J = fun(x)
     sigma, std, cov, rank = _ls_statistics(r, J)
     if estimator != "ls":
         sigma, std, cov = None, None, None
     result = IdentificationResult(
-        x=x, names=spec.names, model=model, estimator=estimator, formulation=formulation, method=method,
+        x=x, names=names, model=model, estimator=estimator, formulation=formulation, method=method,
         residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))),
         rms_residual=float(np.sqrt(np.mean(r**2))), sigma=sigma, std_errors=std, covariance=cov,
         rank=rank, n_iterations=nit, converged=converged, message=message, length_mm=lc,

@@ -1,23 +1,25 @@
-"""Configuration of the simulated rig: the true geometric errors, sensor noise and the CMM placement.
+"""Configuration of the simulated rig: true geometric errors, non-geometric effects, temperature, noise, CMM.
 
-All quantities are mm and degrees. The errors are the "truth" that a calibration should recover: per leg
-a platform-joint error da (platform frame), a base-joint error db (base frame) and a stroke-zero length
-error dl0 (true geometric length = reported length + dl0).
+Lengths are mm and angles degrees unless a field name says otherwise. The geometric errors are the "truth"
+that a calibration should recover: per leg a platform-joint error da (platform frame), a base-joint error
+db (base frame) and a stroke-zero length error dl0 (true geometric length = reported length + dl0). The
+non-geometric effects (all off by default) are the physics a rigid model leaves out.
 """
 
 from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from scipy.spatial.transform import Rotation
 
 from hilcal.robot import Robot, default_robot
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+PerLeg = float | Annotated[list[float], Field(min_length=6, max_length=6)]
 
 PAPER_ERRORS_FILE = Path(__file__).parent / "data" / "paper_errors.toml"
 BUILTIN_ERROR_SETS = ("table2", "table3", "table4", "table5", "zero")
@@ -111,6 +113,164 @@ def random_cmm_pose(seed: int) -> CmmPose:
     )
 
 
+def per_leg(value: float | list[float]) -> np.ndarray:
+    """(6,) array from a scalar (same for all legs) or a list of six values."""
+    return np.broadcast_to(np.asarray(value, dtype=float), (6,)).copy()
+
+
+class _Effect(_Strict):
+    """A switchable effect: off unless enabled."""
+
+    enabled: bool = False
+
+
+def _check_non_negative(value: float | list[float]) -> float | list[float]:
+    if np.any(per_leg(value) < 0):
+        raise ValueError(f"must be >= 0, got {value}")
+    return value
+
+
+class LegComplianceConfig(_Effect):
+    """Structural leg compliance: Δl_i = -c_i F_i, F_i the axial compression (kN) from the platform statics."""
+
+    c_mm_per_kn: PerLeg = Field(default=0.005, description="compliance per leg (or one for all), mm/kN")
+
+    _non_negative = field_validator("c_mm_per_kn")(_check_non_negative)
+
+
+class SensorScaleConfig(_Effect):
+    """Transducer gain error: reported stroke = true stroke (1 + g_i), stroke = length - l0."""
+
+    gain_error_ppm: PerLeg = Field(default=50.0, description="gain error per leg (or one for all), ppm")
+
+    @field_validator("gain_error_ppm")
+    @classmethod
+    def _above_minus_one(cls, value: float | list[float]) -> float | list[float]:
+        if np.any(per_leg(value) <= -1e6):
+            raise ValueError(f"a gain error must be above -1e6 ppm, got {value}")
+        return value
+
+
+class ThermalExpansionConfig(_Effect):
+    """Thermal growth of the legs: Δl_i = alpha L_i (T - T_ref), L_i the current leg length, T the leg temperature."""
+
+    alpha_ppm_per_k: PerLeg = Field(default=11.5, description="expansion coefficient per leg (or one), ppm/K")
+    t_ref_c: float = Field(default=20.0, description="temperature at which the leg lengths are nominal, °C")
+
+
+class JointBacklashConfig(_Effect):
+    """Backlash: Δl_i = +b_i/2 after the leg last extended, -b_i/2 after it last retracted (moves < 1 µm keep it)."""
+
+    backlash_mm: PerLeg = Field(default=0.03, description="backlash per leg (or one for all), mm")
+
+    _non_negative = field_validator("backlash_mm")(_check_non_negative)
+
+
+class OilColumnComplianceConfig(_Effect):
+    """Oil-column compliance growing with the oil volume: Δl_i = -kappa_i F_i (s_i + s_dead), s_i the stroke in m."""
+
+    kappa_mm_per_kn_m: PerLeg = Field(
+        default=0.006, description="compliance per kN and per metre of oil column, per leg (or one), mm/(kN m)"
+    )
+    dead_length_m: float = Field(default=0.15, ge=0, description="dead oil volume as an equivalent length, m")
+
+    _non_negative = field_validator("kappa_mm_per_kn_m")(_check_non_negative)
+
+
+EFFECT_NAMES = ("leg_compliance", "sensor_scale", "thermal_expansion", "joint_backlash", "oil_column_compliance")
+
+
+class EffectsConfig(_Strict):
+    """The non-geometric truth physics of the rig; every effect is off by default."""
+
+    leg_compliance: LegComplianceConfig = Field(default_factory=LegComplianceConfig)
+    sensor_scale: SensorScaleConfig = Field(default_factory=SensorScaleConfig)
+    thermal_expansion: ThermalExpansionConfig = Field(default_factory=ThermalExpansionConfig)
+    joint_backlash: JointBacklashConfig = Field(default_factory=JointBacklashConfig)
+    oil_column_compliance: OilColumnComplianceConfig = Field(default_factory=OilColumnComplianceConfig)
+
+    def active(self) -> tuple[str, ...]:
+        """Names of the enabled effects, in EFFECT_NAMES order."""
+        return tuple(name for name in EFFECT_NAMES if getattr(self, name).enabled)
+
+
+# Scale-1 magnitudes of concealed_effect_config (see its docstring for the resulting leg-length signatures).
+CONCEALED_COMPLIANCE_MM_PER_KN = (0.004, 0.006)
+CONCEALED_GAIN_ERROR_PPM = (30.0, 80.0)
+CONCEALED_ALPHA_PPM_PER_K = (11.0, 12.0)
+CONCEALED_BACKLASH_MM = (0.02, 0.05)
+CONCEALED_KAPPA_MM_PER_KN_M = (0.005, 0.007)
+
+
+def concealed_effect_config(effect_name: str, magnitude_scale: float, seed: int) -> EffectsConfig:
+    """One effect enabled with realistic, seeded magnitudes for a 4000 kg platform on 4.3 m hydraulic legs.
+
+    "none" gives all effects off. Per-leg values are drawn uniformly from the ranges below (seeded) and
+    multiplied by magnitude_scale. Leg-length signature at scale 1 = spread (max - min over the poses) of
+    Δl_i, measured on the paper robot with Table 2 errors over the 56-pose run of ``hilcal simulate`` (the
+    32 D-optimal + 24 verification poses of seed 0, 45 s per pose; rig and effect seeds 0-4): tens of µm,
+    far below the mm geometric errors, a few times the 5 µm CMM noise. Axial loads: 9.1 kN per leg at
+    home, 3.9-14.4 kN over the run.
+
+    - leg_compliance: c = 0.004-0.006 mm/kN per leg (a stiffness of ~200 kN/mm): Δl ≈ -45 µm at home,
+      spread 37-56 µm.
+    - sensor_scale: g = ±(30-80) ppm per leg (random sign), strokes 0-1000 mm: spread 31-79 µm.
+    - thermal_expansion: alpha = 11-12 ppm/K (steel, one value for all legs), T_ref = 20 °C, i.e. ~50 µm/K
+      on a 4.3 m leg; with the rig's default drift (0.5-2 K/h + 0.3 K oscillation) the 42-min run changes
+      T by ~0.9-1.6 K: spread 42-80 µm (mean offset 75-110 µm, absorbed by dl0).
+    - joint_backlash: b = 0.02-0.05 mm per leg, Δl = ±b/2: spread = b = 20-47 µm.
+    - oil_column_compliance: kappa = 0.005-0.007 mm/(kN m) per leg, s_dead = 0.15 m; F (s + s_dead) is
+      ~5.9 kN m at home: Δl ≈ -32 µm on average, spread 30-48 µm.
+    """
+    if magnitude_scale < 0:
+        raise ValueError(f"magnitude_scale must be >= 0, got {magnitude_scale}")
+    if effect_name == "none":
+        return EffectsConfig()
+    if effect_name not in EFFECT_NAMES:
+        raise ValueError(f"unknown effect {effect_name!r}; expected one of none, {', '.join(EFFECT_NAMES)}")
+    rng = np.random.default_rng([seed, 0xEFF, EFFECT_NAMES.index(effect_name)])
+
+    def draw(bounds: tuple[float, float]) -> np.ndarray:
+        return rng.uniform(*bounds, 6) * magnitude_scale
+
+    effect: _Effect
+    if effect_name == "leg_compliance":
+        effect = LegComplianceConfig(enabled=True, c_mm_per_kn=draw(CONCEALED_COMPLIANCE_MM_PER_KN).tolist())
+    elif effect_name == "sensor_scale":
+        sign = rng.choice([-1.0, 1.0], 6)
+        effect = SensorScaleConfig(enabled=True, gain_error_ppm=(sign * draw(CONCEALED_GAIN_ERROR_PPM)).tolist())
+    elif effect_name == "thermal_expansion":
+        alpha = float(rng.uniform(*CONCEALED_ALPHA_PPM_PER_K) * magnitude_scale)
+        effect = ThermalExpansionConfig(enabled=True, alpha_ppm_per_k=alpha)
+    elif effect_name == "joint_backlash":
+        effect = JointBacklashConfig(enabled=True, backlash_mm=draw(CONCEALED_BACKLASH_MM).tolist())
+    else:
+        effect = OilColumnComplianceConfig(enabled=True, kappa_mm_per_kn_m=draw(CONCEALED_KAPPA_MM_PER_KN_M).tolist())
+    return EffectsConfig.model_validate({effect_name: effect})
+
+
+class TemperatureConfig(_Strict):
+    """Leg (= ambient) temperature over the rig's clock: T(t) = T0 + drift t / 3600 + A sin(2 pi t / period)."""
+
+    t0_c: float = Field(default=21.0, description="temperature at t = 0, °C")
+    drift_k_per_h: float = Field(default=1.0, description="linear drift, K/h")
+    amplitude_k: float = Field(default=0.3, ge=0, description="amplitude of the periodic part, K")
+    period_s: float = Field(default=5400.0, gt=0, description="period of the periodic part, s")
+    sensor_noise_k: float = Field(default=0.05, ge=0, description="std of the temperature sensor noise, K")
+
+
+def random_temperature(seed: int) -> TemperatureConfig:
+    """A seeded drifting temperature: T0 20-22 °C, drift 0.5-2 K/h, 0.3 K oscillation with a 1-2 h period."""
+    rng = np.random.default_rng([seed, 0x7E3])
+    return TemperatureConfig(
+        t0_c=float(rng.uniform(20.0, 22.0)),
+        drift_k_per_h=float(rng.uniform(0.5, 2.0)),
+        amplitude_k=0.3,
+        period_s=float(rng.uniform(3600.0, 7200.0)),
+        sensor_noise_k=0.05,
+    )
+
+
 class RigConfig(_Strict):
     """Everything that makes one simulated rig: truth errors, noise, resolution, CMM placement, seed."""
 
@@ -121,14 +281,28 @@ class RigConfig(_Strict):
         default=0.001, ge=0, description="reported lengths are multiples of this"
     )
     cmm_pose: CmmPose = Field(description="CMM frame in the base frame; default: random_cmm_pose(seed)")
+    cmm_noise_model: Literal["gaussian", "distance", "student_t"] = Field(
+        default="gaussian",
+        description="gaussian: std cmm_noise_mm; distance: std cmm_noise_mm (1 + d / reference distance), d the "
+        "distance from the CMM origin; student_t: heavy tails with std cmm_noise_mm",
+    )
+    cmm_noise_reference_distance_mm: float = Field(default=2000.0, gt=0, description="d_ref of the distance model")
+    cmm_noise_student_t_dof: float = Field(default=3.0, gt=2, description="degrees of freedom of the student_t model")
+    effects: EffectsConfig = Field(default_factory=EffectsConfig, description="non-geometric physics, all off")
+    temperature: TemperatureConfig = Field(description="leg temperature model; default: random_temperature(seed)")
 
     @model_validator(mode="before")
     @classmethod
-    def _default_cmm_pose(cls, data: Any) -> Any:
-        """Fill in the seeded random CMM placement so the resolved config records it explicitly."""
-        if isinstance(data, dict) and data.get("cmm_pose") is None:
-            seed = data.get("seed", 0)
-            data = {**data, "cmm_pose": random_cmm_pose(seed if isinstance(seed, int) else 0)}
+    def _seeded_defaults(cls, data: Any) -> Any:
+        """Fill in the seeded CMM placement and temperature model so the resolved config records them explicitly."""
+        if not isinstance(data, dict):
+            return data
+        seed = data.get("seed", 0)
+        seed = seed if isinstance(seed, int) else 0
+        if data.get("cmm_pose") is None:
+            data = {**data, "cmm_pose": random_cmm_pose(seed)}
+        if data.get("temperature") is None:
+            data = {**data, "temperature": random_temperature(seed)}
         return data
 
 

@@ -4,8 +4,11 @@ Deliberately independent of the calibration code (only the declarative robot loa
 kinematics here use scipy rotations and a least-squares forward solver over a rotation vector, so a
 simulation cannot agree with the fitting code merely because both share a formulation.
 
-Truth model, per leg i: true platform joint a_i + da_i, true base joint b_i + db_i, and true geometric
-leg length = reported length + dl0_i. Reported lengths are multiples of the leg resolution.
+Truth model, per leg i: true platform joint a_i + da_i, true base joint b_i + db_i, and true joint-centre
+distance = reported length + dl0_i + the corrections of the enabled non-geometric effects (sim_devices.physics),
+which may depend on the pose (through the leg loads), the leg temperature and the motion history. Reported
+lengths are multiples of the leg resolution. The rig keeps a simulated clock that drives a drifting
+temperature, read by a noisy temperature sensor.
 """
 
 from __future__ import annotations
@@ -15,9 +18,12 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from hilcal.robot import Robot
+from sim_devices import physics
 from sim_devices.config import RigConfig
 
 FK_TOLERANCE_MM = 1e-9
+POSE_CONVERGENCE_MM = 1e-9
+MAX_EFFECT_ITERATIONS = 50
 
 
 def _rotation_from_pose(pose: np.ndarray) -> Rotation:
@@ -32,7 +38,8 @@ def _pose_from_rotation(rot: Rotation, t_mm: np.ndarray) -> np.ndarray:
 
 
 class SimulatedRig:
-    """A Gough platform with true geometric errors, a nominal-geometry controller and a noisy CMM."""
+    """A Gough platform with true geometric errors and optional non-geometric physics, a nominal-geometry
+    controller, a clock with a drifting temperature and its sensor, and a noisy CMM."""
 
     def __init__(self, robot: Robot, config: RigConfig) -> None:
         self.robot = robot
@@ -49,6 +56,10 @@ class SimulatedRig:
         self._last_rotation = _rotation_from_pose(robot.home)
         self._last_translation = robot.home[:3].copy()
         self._pose_cache: np.ndarray | None = None
+        self._active_effects = config.effects.active()
+        self._direction = np.ones(6)
+        self._time_s = 0.0
+        self._temperature_rng = np.random.default_rng([config.seed, 0x7E5])
 
     # ------------------------------------------------------------------ controller side
 
@@ -75,24 +86,66 @@ class SimulatedRig:
         for i, value in enumerate(L):
             if not np.isfinite(value) or not lo <= value <= hi:
                 raise ValueError(f"leg {i + 1}: {value} mm is outside the leg limits [{lo}, {hi}] mm")
-        self._reported = self._quantize(L)
+        quantized = self._quantize(L)
+        self._direction = physics.motion_direction(self._direction, quantized - self._reported)
+        self._reported = quantized
         self._pose_cache = None
 
     def reported_lengths(self) -> np.ndarray:
         """Leg lengths (mm) as the controller reports them now."""
         return self._reported.copy()
 
+    def motion_direction(self) -> np.ndarray:
+        """(6,) direction of the last motion of each leg: +1 extended, -1 retracted (initially +1)."""
+        return self._direction.copy()
+
+    # ------------------------------------------------------------------ clock and temperature
+
+    @property
+    def time_s(self) -> float:
+        """Simulated clock, s since the rig was created."""
+        return self._time_s
+
+    def advance_time(self, seconds: float) -> None:
+        """Let simulated time pass (the temperature drifts)."""
+        if not np.isfinite(seconds) or seconds < 0:
+            raise ValueError(f"seconds must be finite and >= 0, got {seconds}")
+        self.set_time(self._time_s + seconds)
+
+    def set_time(self, t_s: float) -> None:
+        """Set the simulated clock (s)."""
+        if not np.isfinite(t_s) or t_s < 0:
+            raise ValueError(f"t_s must be finite and >= 0, got {t_s}")
+        self._time_s = float(t_s)
+        if "thermal_expansion" in self._active_effects:
+            self._pose_cache = None
+
+    def true_temperature_c(self) -> float:
+        """True leg temperature (°C) now."""
+        return physics.leg_temperature_c(self.config.temperature, self._time_s)
+
+    def temperature_c(self) -> float:
+        """Reading of the temperature sensor (°C): the true temperature plus sensor noise."""
+        noise = self._temperature_rng.normal(0.0, self.config.temperature.sensor_noise_k)
+        return self.true_temperature_c() + float(noise)
+
     # ------------------------------------------------------------------ truth side
 
     def true_lengths(self, reported_mm: np.ndarray) -> np.ndarray:
-        """True joint-centre distances (mm) for reported lengths: reported + dl0."""
+        """Rigid true joint-centre distances (mm) for reported lengths: reported + dl0 (without the effects)."""
         return np.asarray(reported_mm, dtype=float) + self.dl0_mm
 
     def _solve_fk(
-        self, reported_mm: np.ndarray, start_rotation: Rotation, start_t_mm: np.ndarray
+        self,
+        reported_mm: np.ndarray,
+        start_rotation: Rotation,
+        start_t_mm: np.ndarray,
+        corrections_mm: np.ndarray | None = None,
     ) -> tuple[Rotation, np.ndarray]:
         """FK of the true geometry; unknowns: rotation vector relative to start_rotation (rad), t (mm)."""
         target = self.true_lengths(reported_mm)
+        if corrections_mm is not None:
+            target = target + corrections_mm
         a, b = self.a_true, self.b_true
 
         def residual(x: np.ndarray) -> np.ndarray:
@@ -118,9 +171,61 @@ class SimulatedRig:
             )
         return Rotation.from_rotvec(sol.x[:3]) * start_rotation, sol.x[3:].copy()
 
+    def _corrections_at(
+        self, reported_mm: np.ndarray, rotation: Rotation, t_mm: np.ndarray, direction: np.ndarray, temperature_c: float
+    ) -> dict[str, np.ndarray]:
+        """Δl (mm) of each enabled effect with the platform at (rotation, t_mm)."""
+        R = rotation.as_matrix()
+        joints = physics.platform_joints_mm(R, t_mm, self.a_true)
+        forces = physics.axial_leg_forces_kn(
+            R, t_mm, self.a_true, self.b_true, self.robot.moving_mass_kg, self.robot.com, self.robot.gravity_mps2
+        )
+        return physics.length_corrections_mm(
+            self.config.effects,
+            reported_mm=reported_mm,
+            l0_mm=self.robot.l0,
+            leg_lengths_mm=np.linalg.norm(joints - self.b_true, axis=1),
+            forces_kn=forces,
+            temperature_c=temperature_c,
+            direction=direction,
+        )
+
+    def _solve_pose(
+        self,
+        reported_mm: np.ndarray,
+        start_rotation: Rotation,
+        start_t_mm: np.ndarray,
+        direction: np.ndarray,
+        temperature_c: float,
+    ) -> tuple[Rotation, np.ndarray]:
+        """True pose with every enabled effect: fixed-point iteration of FK on the corrected lengths.
+
+        The corrections depend on the pose (leg loads, leg lengths), so FK is repeated with the corrections
+        of the previous solution until no platform joint moves by POSE_CONVERGENCE_MM. Without effects this
+        is the plain rigid FK.
+        """
+        rotation, t = self._solve_fk(reported_mm, start_rotation, start_t_mm)
+        if not self._active_effects:
+            return rotation, t
+        for _ in range(MAX_EFFECT_ITERATIONS):
+            corrections = self._corrections_at(reported_mm, rotation, t, direction, temperature_c)
+            new_rotation, new_t = self._solve_fk(reported_mm, rotation, t, np.sum(list(corrections.values()), axis=0))
+            moved = physics.platform_joints_mm(new_rotation.as_matrix(), new_t, self.a_true) - (
+                physics.platform_joints_mm(rotation.as_matrix(), t, self.a_true)
+            )
+            rotation, t = new_rotation, new_t
+            if float(np.max(np.linalg.norm(moved, axis=1))) < POSE_CONVERGENCE_MM:
+                return rotation, t
+        raise RuntimeError(
+            f"the pose with effects {', '.join(self._active_effects)} did not converge in {MAX_EFFECT_ITERATIONS} "
+            f"iterations for reported lengths {reported_mm.tolist()} mm"
+        )
+
     def _fk_warm(self, reported_mm: np.ndarray) -> np.ndarray:
-        """Solve FK starting from the previous solution and remember this one as the next start."""
-        rotation, t = self._solve_fk(reported_mm, self._last_rotation, self._last_translation)
+        """Solve the true pose starting from the previous solution and remember this one as the next start."""
+        rotation, t = self._solve_pose(
+            reported_mm, self._last_rotation, self._last_translation, self._direction, self.true_temperature_c()
+        )
         self._last_rotation, self._last_translation = rotation, t
         return _pose_from_rotation(rotation, t)
 
@@ -131,16 +236,44 @@ class SimulatedRig:
         return self._pose_cache.copy()
 
     def true_poses_for_lengths(self, reported_mm: np.ndarray) -> np.ndarray:
-        """Actual poses (N, 6) for reported lengths (N, 6); does not move the rig."""
+        """Actual poses (N, 6) for reported lengths (N, 6) visited in order; does not move the rig.
+
+        With effects, the sequence starts from the rig's current lengths and motion directions, at the
+        current temperature (the clock does not advance).
+        """
         L = np.asarray(reported_mm, dtype=float)
         if L.ndim != 2 or L.shape[1] != 6:
             raise ValueError(f"leg lengths must have shape (N, 6), got {L.shape}")
         rotation, t = _rotation_from_pose(self.robot.home), self.robot.home[:3]
+        previous, direction = self._reported, self._direction
+        temperature = self.true_temperature_c()
         out = np.empty_like(L)
         for k, lengths in enumerate(L):
-            rotation, t = self._solve_fk(lengths, rotation, t)
+            direction = physics.motion_direction(direction, lengths - previous)
+            previous = lengths
+            rotation, t = self._solve_pose(lengths, rotation, t, direction, temperature)
             out[k] = _pose_from_rotation(rotation, t)
         return out
+
+    def leg_forces_kn(self) -> np.ndarray:
+        """(6,) axial leg compressions (kN) holding the moving mass at the true pose."""
+        pose = self.true_pose()
+        return physics.axial_leg_forces_kn(
+            _rotation_from_pose(pose).as_matrix(),
+            pose[:3],
+            self.a_true,
+            self.b_true,
+            self.robot.moving_mass_kg,
+            self.robot.com,
+            self.robot.gravity_mps2,
+        )
+
+    def length_corrections_mm(self) -> dict[str, np.ndarray]:
+        """Δl (mm, (6,)) of each enabled effect at the true pose, the current temperature and motion history."""
+        pose = self.true_pose()
+        return self._corrections_at(
+            self._reported, _rotation_from_pose(pose), pose[:3], self._direction, self.true_temperature_c()
+        )
 
     # ------------------------------------------------------------------ CMM
 
@@ -155,6 +288,19 @@ class SimulatedRig:
         sigma = self.config.cmm_noise_mm
         platform = self.to_cmm(platform_base)
         base = self.to_cmm(self.robot.base_spheres)
-        platform = platform + self._rng.normal(0.0, sigma, platform.shape)
-        base = base + self._rng.normal(0.0, sigma, base.shape)
-        return platform, base
+        if self.config.cmm_noise_model == "gaussian":
+            platform = platform + self._rng.normal(0.0, sigma, platform.shape)
+            base = base + self._rng.normal(0.0, sigma, base.shape)
+            return platform, base
+        noisy = []
+        for points in (platform, base):
+            noise = physics.cmm_noise_mm(
+                self._rng,
+                points,
+                sigma,
+                self.config.cmm_noise_model,
+                reference_distance_mm=self.config.cmm_noise_reference_distance_mm,
+                student_t_dof=self.config.cmm_noise_student_t_dof,
+            )
+            noisy.append(points + noise)
+        return noisy[0], noisy[1]
