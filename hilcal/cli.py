@@ -1,4 +1,4 @@
-"""The `hilcal` command line: identify, identifiability, design, simulate, demo.
+"""The `hilcal` command line: identify, diagnose, identifiability, design, simulate, demo.
 
 Exit codes: 0 ok, 2 bad input (robot file, recording, options). Units: mm and degrees.
 """
@@ -134,6 +134,43 @@ def identify(
     ident = outcome.identification
     out.print(f"fit: max |residual| {ident.max_abs_residual:.4f} mm, RMS {ident.rms_residual:.4f} mm, "
               f"{ident.n_iterations} evaluations, converged={ident.converged}")
+
+
+@app.command()
+def diagnose(
+    recording: Annotated[Path, typer.Argument(help="recording CSV (real or simulated)")],
+    robot: RobotOption = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print one JSON object")] = False,
+    report: Annotated[Path | None, typer.Option("--report", help="write plots and an HTML page here")] = None,
+    alpha: Annotated[float, typer.Option(help="family-wise false-alarm rate")] = 0.05,
+    seed: Annotated[int, typer.Option(help="seed of the bootstrap")] = 0,
+) -> None:
+    """Find the physics the geometric model leaves out: locate, name, model it, show the fit improve."""
+    from hilcal.diagnosis import diagnose as run_diagnosis
+
+    if not 0 < alpha < 1:
+        _fail("--alpha must lie in (0, 1)")
+    rb = _robot(robot)
+    try:
+        rec = read_recording(recording, rb)
+        diag = run_diagnosis(rec, rb, alpha=alpha, seed=seed)
+    except (RecordingError, IdentificationError, KinematicsError) as e:
+        _fail(str(e))
+    page = None
+    if report is not None:
+        from hilcal.diagnosis_report import write_report
+
+        page = write_report(diag, rec, report, alpha)
+    if as_json:
+        print(json.dumps(diag.to_json(), indent=2))
+        return
+    out.print(f"[bold]effect:[/] {diag.effect}")
+    out.print(diag.explanation, highlight=False)
+    out.print(_accuracy_table("verify poses", [("geometry only", diag.before), ("with effect", diag.after)]))
+    for finding in diag.findings[:5]:
+        out.print(f"  - {finding.text}", highlight=False)
+    if page is not None:
+        out.print(f"report: {page}")
 
 
 def _pose_set(rb: Robot, recording: Path | None, design_name: str, seed: int) -> np.ndarray:

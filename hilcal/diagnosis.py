@@ -54,6 +54,7 @@ class EffectTest:
     p_f_test: float = float("nan")
     p_holm: float = float("nan")
     cv_rms_mm: float = float("nan")
+    cv_rms_whitened: float = float("nan")
     significant: bool = False
     supported: bool = False
 
@@ -129,17 +130,22 @@ def _omnibus_regressors(ctx: EffectContext) -> np.ndarray:
     return out
 
 
-def _loo_cv_rms(r0: np.ndarray, A: np.ndarray, n_poses: int) -> float:
-    """Leave-one-pose-out residual RMS of the linearized model r0 + A d (exact group-deletion formula)."""
+def _loo_cv_rms(r0: np.ndarray, A: np.ndarray, n_poses: int, unwhiten: np.ndarray) -> tuple[float, float]:
+    """Leave-one-pose-out residual RMS of the linearized model r0 + A d (exact group-deletion formula).
+
+    Returns (whitened RMS, the decision metric; RMS in mm with rotations as mm at the platform radius).
+    """
     U = _orth(A)
     resid = (r0 - U @ (U.T @ r0)).reshape(n_poses, 6)
     Upose = U.reshape(n_poses, 6, -1)
-    total = 0.0
+    total_w = total_mm = 0.0
     for c in range(n_poses):
         H_cc = Upose[c] @ Upose[c].T
         e = np.linalg.lstsq(np.eye(6) - H_cc, resid[c], rcond=1e-10)[0]
-        total += float(e @ e)
-    return float(np.sqrt(total / r0.size))
+        e_mm = unwhiten @ e
+        total_w += float(e @ e)
+        total_mm += float(e_mm @ e_mm)
+    return float(np.sqrt(total_w / r0.size)), float(np.sqrt(total_mm / r0.size))
 
 
 def _whitener(r: np.ndarray, J: np.ndarray, n_poses: int) -> np.ndarray:
@@ -302,18 +308,19 @@ def diagnose(
     combined = np.array([max(raw[n][1], raw[n][2]) for n in names])
     p_holm = dict(zip(names, _holm(combined), strict=True)) if names else {}
 
-    cv0 = _loo_cv_rms(r0, J0, n_poses)
+    W_inv = np.linalg.inv(W)
+    cv0_w, cv0 = _loo_cv_rms(r0, J0, n_poses, W_inv)
     tests: list[EffectTest] = []
     for name, title, phi, reason, _ in tests_in:
         q = 0 if phi is None else phi.shape[2]
         if name not in raw:
             tests.append(EffectTest(name, title, q, False, reason or "absorbed entirely by the geometric parameters"))
             continue
-        cv = _loo_cv_rms(r0, np.concatenate([J0, columns[name]], axis=1), n_poses)
+        cv_w, cv = _loo_cv_rms(r0, np.concatenate([J0, columns[name]], axis=1), n_poses, W_inv)
         significant = bool(p_holm[name] < alpha)
         tests.append(EffectTest(name, title, q, True, None, raw[name][0], raw[name][1], raw[name][2], p_holm[name], cv,
-                                significant, significant and cv < cv0 and name != "omnibus"))
-    supported = sorted((t for t in tests if t.supported), key=lambda t: t.cv_rms_mm)
+                                cv_w, significant, significant and cv_w < cv0_w and name != "omnibus"))
+    supported = sorted((t for t in tests if t.supported), key=lambda t: t.cv_rms_whitened)
     untestable = {t.name: t.reason for t in tests if not t.applicable and t.reason}
 
     mea_verify = rec.select("verify")
