@@ -19,6 +19,7 @@ The decision rule (documented in docs/diagnosis.md):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -37,6 +38,7 @@ from hilcal.robot import Robot
 log = structlog.get_logger(__name__)
 
 N_GEO = 42
+OMNIBUS = "omnibus"
 SIMILAR_SIGNATURE = 0.9
 
 
@@ -234,7 +236,7 @@ def _explain(cand: Candidate, fit: IdentificationResult, se: np.ndarray, test: E
     values = ", ".join(f"{n} = {v:+.3g} ± {s:.2g}" for n, v, s in zip(fit.names[N_GEO:], fit.x[N_GEO:], se,
                                                                        strict=True))
     text = (f"Missing physics: {cand.title}. In words: {cand.sentence}. Fitted with the geometry: {values}. "
-            f"Evidence: Holm-corrected bootstrap p = {test.p_holm:.3g}; leave-one-pose-out residual "
+            f"Evidence: Holm-corrected p = {test.p_holm:.3g} (F test and wild bootstrap); leave-one-pose-out residual "
             f"{cv0 * 1000:.1f} -> {test.cv_rms_mm * 1000:.1f} um.")
     if ambiguous:
         names = ", ".join(CANDIDATES_BY_NAME[a].title for a in ambiguous)
@@ -243,6 +245,72 @@ def _explain(cand: Candidate, fit: IdentificationResult, se: np.ndarray, test: E
         text += (" Thermal growth of the legs would look the same here, and it could not be tested: "
                  f"{untestable['thermal_expansion']}.")
     return text
+
+
+@dataclass(frozen=True)
+class _NullModel:
+    """The geometry-only fit in whitened form: what every candidate is tested against."""
+
+    fit: IdentificationResult
+    residuals: np.ndarray
+    jacobian: np.ndarray
+    basis: np.ndarray
+    whitener: np.ndarray
+    n_poses: int
+    columns_of: Callable[[np.ndarray], np.ndarray]
+
+    @property
+    def dof(self) -> int:
+        return self.residuals.size - self.basis.shape[1]
+
+
+def _null_model(robot: Robot, mea: Recording) -> _NullModel:
+    lc = robot.characteristic_length_mm
+    geo = identify(robot, mea.legs_mm, mea.meas, estimator="ls")
+    r_mm, J_mm = residual_function(robot, mea.legs_mm, mea.meas, "forward", lc)(geo.x)
+    W = _whitener(r_mm, J_mm, mea.n)
+    J0 = _whiten(J_mm, W, mea.n)
+    Q0 = _orth(J0)
+    r0 = _whiten(r_mm, W, mea.n)
+
+    def columns_of(phi: np.ndarray) -> np.ndarray:
+        """Whitened residual Jacobian columns of an effect's parameters at the geometric solution."""
+        x = np.concatenate([geo.x, np.zeros(phi.shape[2])])
+        J = residual_function(robot, mea.legs_mm, mea.meas, "forward", lc, phi)(x)[1]
+        return _whiten(J[:, N_GEO:], W, mea.n)
+
+    return _NullModel(geo, r0 - Q0 @ (Q0.T @ r0), J0, Q0, W, mea.n, columns_of)
+
+
+def _group_tests(
+    null: _NullModel, groups: dict[str, np.ndarray], n_boot: int, seed: int
+) -> dict[str, tuple[float, float, float, np.ndarray, np.ndarray]]:
+    """Added-variable F, its bootstrap and F-distribution p-values, per group of effect regressors.
+
+    Returns name -> (F, p_bootstrap, p_F, basis of the part the geometry cannot absorb, raw columns).
+    """
+    r0, Q0, m = null.residuals, null.basis, null.residuals.size
+    signs = np.random.default_rng(seed).choice([-1.0, 1.0], size=(null.n_poses, n_boot))
+    R_star = (_leverage_adjusted(r0, Q0, null.n_poses)[:, :, None] * signs[:, None, :]).reshape(m, n_boot)
+    R_star -= Q0 @ (Q0.T @ R_star)
+    rss0, rss_star = float(r0 @ r0), np.sum(R_star**2, axis=0)
+
+    def f_stat(Qk: np.ndarray, r: np.ndarray, rss: np.ndarray | float) -> np.ndarray:
+        explained = np.sum((Qk.T @ r) ** 2, axis=0)
+        return (explained / Qk.shape[1]) / ((rss - explained) / (null.dof - Qk.shape[1]))
+
+    out = {}
+    for name, phi in groups.items():
+        X = null.columns_of(phi)
+        Xt = X - Q0 @ (Q0.T @ X)
+        Qk = _orth(Xt, rel_tol=1e-6)
+        if Qk.shape[1] == 0 or np.linalg.norm(Xt) <= 1e-9 * np.linalg.norm(X):
+            continue
+        f = float(f_stat(Qk, r0, rss0))
+        p_boot = float((1 + np.sum(f_stat(Qk, R_star, rss_star) >= f)) / (n_boot + 1))
+        p_f = float(f_dist.sf(f, Qk.shape[1], null.dof - Qk.shape[1]))
+        out[name] = (f, p_boot, p_f, Qk, X)
+    return out
 
 
 def diagnose(
@@ -254,72 +322,31 @@ def diagnose(
     is_measure = rec.phase == "measure"
     ctx = ctx_all.rows(is_measure)
     mea = rec.select("measure")
-    n_poses = mea.n
-    lc = robot.characteristic_length_mm
+    null = _null_model(robot, mea)
+    geo, r0, J0 = null.fit, null.residuals, null.jacobian
 
-    geo = identify(robot, mea.legs_mm, mea.meas, estimator="ls")
-    r_mm, J_mm = residual_function(robot, mea.legs_mm, mea.meas, "forward", lc)(geo.x)
-    W = _whitener(r_mm, J_mm, n_poses)
-    J0 = _whiten(J_mm, W, n_poses)
-    Q0 = _orth(J0)
-    r0 = _whiten(r_mm, W, n_poses)
-    r0 = r0 - Q0 @ (Q0.T @ r0)
-    m = r0.size
-
-    tests_in: list[tuple[str, str, np.ndarray | None, str | None, np.ndarray | None]] = []
-    for cand in candidates:
-        reason = cand.applicable(ctx)
-        phi = None if reason else cand.regressor(ctx)
-        tests_in.append((cand.name, cand.title, phi, reason, None))
-    tests_in.append(("omnibus", "structure no candidate describes (generic stroke/time basis)",
-                     _omnibus_regressors(ctx), None, None))
-
-    bases: dict[str, np.ndarray] = {}
-    columns: dict[str, np.ndarray] = {}
-    for name, _, phi, reason, _ in tests_in:
-        if reason is not None or phi is None:
-            continue
-        X = _whiten(residual_function(robot, mea.legs_mm, mea.meas, "forward", lc, phi)(
-            np.concatenate([geo.x, np.zeros(phi.shape[2])]))[1][:, N_GEO:], W, n_poses)
-        Xt = X - Q0 @ (Q0.T @ X)
-        Qk = _orth(Xt, rel_tol=1e-6)
-        if Qk.shape[1] > 0 and np.linalg.norm(Xt) > 1e-9 * np.linalg.norm(X):
-            bases[name], columns[name] = Qk, X
-
-    rng = np.random.default_rng(seed)
-    signs = rng.choice([-1.0, 1.0], size=(n_poses, n_boot))
-    R_star = (_leverage_adjusted(r0, Q0, n_poses)[:, :, None] * signs[:, None, :]).reshape(m, n_boot)
-    R_star -= Q0 @ (Q0.T @ R_star)
-    rss0, rss0_star = float(r0 @ r0), np.sum(R_star**2, axis=0)
-
-    def f_stat(Qk: np.ndarray, r: np.ndarray, rss: np.ndarray | float) -> np.ndarray:
-        q = Qk.shape[1]
-        explained = np.sum((Qk.T @ r) ** 2, axis=0)
-        return (explained / q) / ((rss - explained) / (m - Q0.shape[1] - q))
-
-    raw = {}
-    for name, Qk in bases.items():
-        f = float(f_stat(Qk, r0, rss0))
-        f_star = f_stat(Qk, R_star, rss0_star)
-        p_boot = (1 + np.sum(f_star >= f)) / (n_boot + 1)
-        p_f = float(f_dist.sf(f, Qk.shape[1], m - Q0.shape[1] - Qk.shape[1]))
-        raw[name] = (f, p_boot, p_f)
+    titles = {c.name: c.title for c in candidates}
+    titles[OMNIBUS] = "structure no candidate describes (generic stroke/time basis)"
+    reasons = {c.name: c.applicable(ctx) for c in candidates}
+    groups = {c.name: c.regressor(ctx) for c in candidates if reasons[c.name] is None}
+    groups[OMNIBUS] = _omnibus_regressors(ctx)
+    raw = _group_tests(null, groups, n_boot, seed)
     names = list(raw)
-    combined = np.array([max(raw[n][1], raw[n][2]) for n in names])
-    p_holm = dict(zip(names, _holm(combined), strict=True)) if names else {}
+    p_holm = dict(zip(names, _holm(np.array([max(raw[n][1], raw[n][2]) for n in names])), strict=True))
 
-    W_inv = np.linalg.inv(W)
-    cv0_w, cv0 = _loo_cv_rms(r0, J0, n_poses, W_inv)
+    W_inv = np.linalg.inv(null.whitener)
+    cv0_w, cv0 = _loo_cv_rms(r0, J0, null.n_poses, W_inv)
     tests: list[EffectTest] = []
-    for name, title, phi, reason, _ in tests_in:
-        q = 0 if phi is None else phi.shape[2]
+    for name, title in titles.items():
+        q = groups[name].shape[2] if name in groups else 0
         if name not in raw:
-            tests.append(EffectTest(name, title, q, False, reason or "absorbed entirely by the geometric parameters"))
+            tests.append(EffectTest(name, title, q, False, reasons.get(name) or "absorbed by the geometric parameters"))
             continue
-        cv_w, cv = _loo_cv_rms(r0, np.concatenate([J0, columns[name]], axis=1), n_poses, W_inv)
+        f, p_boot, p_f, _, X = raw[name]
+        cv_w, cv = _loo_cv_rms(r0, np.concatenate([J0, X], axis=1), null.n_poses, W_inv)
         significant = bool(p_holm[name] < alpha)
-        tests.append(EffectTest(name, title, q, True, None, raw[name][0], raw[name][1], raw[name][2], p_holm[name], cv,
-                                cv_w, significant, significant and cv_w < cv0_w and name != "omnibus"))
+        tests.append(EffectTest(name, title, q, True, None, f, p_boot, p_f, p_holm[name], cv, cv_w, significant,
+                                significant and cv_w < cv0_w and name != OMNIBUS))
     supported = sorted((t for t in tests if t.supported), key=lambda t: t.cv_rms_whitened)
     untestable = {t.name: t.reason for t in tests if not t.applicable and t.reason}
 
@@ -349,12 +376,13 @@ def diagnose(
     phi = cand.regressor(ctx)
     fit = identify(robot, mea.legs_mm, mea.meas, estimator="ls", extra_regressors=phi,
                    extra_names=cand.parameter_names())
-    r1, J1 = residual_function(robot, mea.legs_mm, mea.meas, "forward", lc, phi)(fit.x)
-    se = _cluster_robust_se(J1, r1, n_poses)[N_GEO:]
-    signature = bases[best.name] @ (bases[best.name].T @ r0)
+    r1, J1 = residual_function(robot, mea.legs_mm, mea.meas, "forward", robot.characteristic_length_mm, phi)(fit.x)
+    se = _cluster_robust_se(J1, r1, mea.n)[N_GEO:]
+    basis_of = {name: raw[name][3] for name in raw}
+    signature = basis_of[best.name] @ (basis_of[best.name].T @ r0)
     ambiguous = []
     for other in supported[1:]:
-        s2 = bases[other.name] @ (bases[other.name].T @ r0)
+        s2 = basis_of[other.name] @ (basis_of[other.name].T @ r0)
         cos = float(signature @ s2 / (np.linalg.norm(signature) * np.linalg.norm(s2) + 1e-300))
         if cos > SIMILAR_SIGNATURE:
             ambiguous.append(other.name)
