@@ -1,0 +1,16 @@
+"""Declarative protocol definitions shared by ``drivers`` and ``sim_devices``; data and tiny pure helpers only.
+
+Controller: ``controller.dbc`` (CAN frames), ``controller_states`` (state, command, reason and fault codes),
+``registers`` (Modbus register map), ``checksums`` (CRC-8/-16/-32); see docs/protocols.md. CMM: ``cmm``.
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+
+CONTROLLER_DBC = "controller.dbc"
+
+
+def controller_dbc_text() -> str:
+    """Text of the controller CAN database (package data ``hilcal/protocols/controller.dbc``)."""
+    return resources.files(__name__).joinpath(CONTROLLER_DBC).read_text()
