@@ -1,0 +1,147 @@
+"""Abstract servo-controller interface and its typed errors, in the style of python-can's ``can/bus.py``.
+
+One module per transport implements ``ControllerInterface`` (``controller_can.py``: CAN through any
+python-can interface). Lengths are *controller lengths* in mm: stroke + the controller's leg offset l0.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from types import TracebackType
+from typing import NamedTuple
+
+import numpy as np
+
+from hilcal.protocols.controller_states import ControllerState, FaultCode, RefusalReason
+from hilcal.robot import Robot
+
+N_LEGS = 6
+
+
+class ControllerError(Exception):
+    """Base class of every controller driver error."""
+
+
+class ControllerLost(ControllerError):
+    """No heartbeat from the controller within the timeout: it is not commanded until heartbeats resume."""
+
+
+class ControllerFault(ControllerError):
+    """The controller is in FAULT (or ESTOP, see EStopActive); motion stopped, FAULT_RESET needed."""
+
+    def __init__(self, message: str, state: ControllerState, fault: FaultCode) -> None:
+        super().__init__(message)
+        self.state = state
+        self.fault = fault
+
+
+class EStopActive(ControllerFault):
+    """The controller is in ESTOP (latched): release the e-stop, then FAULT_RESET."""
+
+
+class CommandRefused(ControllerError):
+    """A command not allowed in the current state, refused by the driver (nothing sent) or by the controller."""
+
+    def __init__(self, message: str, reason: RefusalReason, state: ControllerState | None, by: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+        self.state = state
+        self.by = by
+
+
+class CommandTimeout(ControllerError):
+    """The controller did not acknowledge a command in time: it may or may not have executed it."""
+
+
+class LimitViolation(ControllerError, ValueError):
+    """A setpoint outside the robot's leg limits (or not finite): refused before anything is sent."""
+
+
+class FrameError(ControllerError):
+    """A frame that is not a valid controller frame (unknown ID, wrong length, bad checksum)."""
+
+
+class MotionTimeout(ControllerError):
+    """The legs did not reach IN_POSITION within the timeout."""
+
+
+class MotionAborted(ControllerError):
+    """The move ended without IN_POSITION (stopped or disabled by someone else)."""
+
+
+class PositionMismatch(ControllerError):
+    """The controller reported IN_POSITION but its feedback differs from the setpoint beyond the tolerance."""
+
+
+class Feedback(NamedTuple):
+    """Measured controller lengths (mm) with the state and fault code of the same heartbeat."""
+
+    lengths_mm: np.ndarray
+    state: ControllerState
+    fault: FaultCode
+
+
+def check_leg_limits(robot: Robot, lengths_mm: Sequence[float] | np.ndarray) -> np.ndarray:
+    """The lengths as a (6,) float array; LimitViolation naming every leg outside robot.leg_limits."""
+    lengths = np.asarray(lengths_mm, dtype=float)
+    if lengths.shape != (N_LEGS,):
+        raise LimitViolation(f"expected {N_LEGS} leg lengths, got shape {lengths.shape}")
+    lo, hi = robot.leg_limits
+    bad = [
+        f"leg {i + 1}: {v} mm"
+        for i, v in enumerate(lengths)
+        if not (np.isfinite(v) and lo <= v <= hi)
+    ]
+    if bad:
+        raise LimitViolation(f"setpoint outside the leg limits [{lo}, {hi}] mm: {', '.join(bad)}; nothing sent")
+    return lengths
+
+
+class ControllerInterface(ABC):
+    """A servo controller of a 6-leg platform; a context manager that closes the link on exit."""
+
+    @abstractmethod
+    def enable(self) -> None:
+        """DISABLED -> ENABLED (servo on, holding position)."""
+
+    @abstractmethod
+    def disable(self) -> None:
+        """ENABLED / MOVING / IN_POSITION -> DISABLED."""
+
+    @abstractmethod
+    def stop(self) -> None:
+        """Halt motion where the legs are: MOVING -> ENABLED."""
+
+    @abstractmethod
+    def fault_reset(self) -> None:
+        """FAULT -> DISABLED; ESTOP -> DISABLED once the e-stop is released."""
+
+    @abstractmethod
+    def estop(self) -> None:
+        """Software e-stop: always sent, whatever the state; latches ESTOP."""
+
+    @abstractmethod
+    def move_legs(self, lengths_mm: Sequence[float] | np.ndarray, timeout_s: float) -> np.ndarray:
+        """Check the setpoint against the leg limits, send it, wait for IN_POSITION; measured lengths (mm)."""
+
+    @abstractmethod
+    def feedback(self) -> Feedback:
+        """Latest measured lengths, state and fault code."""
+
+    @property
+    @abstractmethod
+    def state(self) -> ControllerState:
+        """Latest controller state (ControllerLost if the heartbeat is lost)."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release the transport (idempotent)."""
+
+    def __enter__(self) -> ControllerInterface:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()

@@ -1,0 +1,537 @@
+"""CAN driver of the servo controller through any python-can interface (socketcan, pcan, kvaser, slcan, virtual).
+
+Frames are those of ``hilcal/protocols/controller.dbc``. Every sent frame carries a per-ID 4-bit rolling
+counter and a CRC-8/SAE-J1850 checksum; every received frame is checked, so lost (counter jump), repeated
+(same counter) and corrupted (checksum) frames are counted in ``frame_stats`` and corrupted or repeated ones
+are discarded. A reader thread tracks the 20 ms heartbeat (Status + 3 Feedback frames sharing a counter);
+without a Status frame for ``heartbeat_timeout_s`` the controller is lost and every command except
+``estop()`` raises ControllerLost until heartbeats resume. Commands are checked against the shared state
+machine before sending and then acknowledged by the controller (CommandAck).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import can
+import cantools
+import numpy as np
+import structlog
+
+from drivers.controller_base import (
+    CommandRefused,
+    CommandTimeout,
+    ControllerError,
+    ControllerFault,
+    ControllerInterface,
+    ControllerLost,
+    EStopActive,
+    Feedback,
+    FrameError,
+    MotionAborted,
+    MotionTimeout,
+    PositionMismatch,
+    check_leg_limits,
+)
+from hilcal.protocols import controller_dbc_text
+from hilcal.protocols.checksums import (
+    CAN_CHECKSUM_BYTE,
+    CAN_COUNTER_BYTE,
+    CAN_COUNTER_MODULO,
+    CAN_PAYLOAD_BYTES,
+    can_frame_checksum,
+)
+from hilcal.protocols.controller_states import (
+    Command,
+    ControllerState,
+    FaultCode,
+    RefusalReason,
+    refusal_reason,
+)
+from hilcal.robot import Robot
+
+log = structlog.get_logger(__name__)
+
+UM_PER_MM = 1000
+MAX_UM = (1 << 24) - 1
+HEARTBEAT_PERIOD_S = 0.02
+DEFAULT_HEARTBEAT_TIMEOUT_S = 5 * HEARTBEAT_PERIOD_S
+FEEDBACK_NAMES = ("FeedbackL12", "FeedbackL34", "FeedbackL56")
+SETPOINT_NAMES = ("SetpointL12", "SetpointL34", "SetpointL56")
+
+
+class UnknownFrame(FrameError):
+    """A frame ID that is not in the controller database (other traffic on the bus)."""
+
+
+class FrameLengthError(FrameError):
+    pass
+
+
+class ChecksumError(FrameError):
+    pass
+
+
+@dataclass(frozen=True)
+class DecodedFrame:
+    name: str
+    signals: dict[str, int]
+
+    @property
+    def counter(self) -> int:
+        return self.signals["Counter"]
+
+
+class FrameCodec:
+    """Controller frames <-> raw signal values via the DBC; sets and verifies counter and checksum."""
+
+    def __init__(self) -> None:
+        self.db = cantools.database.load_string(controller_dbc_text(), "dbc")
+        self._by_id = {m.frame_id: m for m in self.db.messages}
+        self._by_name = {m.name: m for m in self.db.messages}
+        for m in self.db.messages:
+            layout = {s.name: (s.start, s.length) for s in m.signals}
+            if (
+                m.length != CAN_PAYLOAD_BYTES
+                or layout.get("Counter") != (8 * CAN_COUNTER_BYTE, 4)
+                or layout.get("Checksum") != (8 * CAN_CHECKSUM_BYTE, 8)
+            ):
+                raise FrameError(f"DBC message {m.name}: counter/checksum not at bytes {CAN_COUNTER_BYTE}/"
+                                 f"{CAN_CHECKSUM_BYTE}")
+
+    def frame_id(self, name: str) -> int:
+        return self._by_name[name].frame_id
+
+    def sent_by_controller(self, frame_id: int) -> bool:
+        return "CONTROLLER" in self._by_id[frame_id].senders
+
+    def encode(self, name: str, signals: dict[str, int], counter: int) -> can.Message:
+        message = self._by_name[name]
+        try:
+            payload = message.encode({**signals, "Counter": counter % CAN_COUNTER_MODULO, "Checksum": 0},
+                                     scaling=False, strict=True)
+        except (cantools.database.EncodeError, KeyError) as err:
+            raise FrameError(f"cannot encode {name} {signals}: {err}") from err
+        data = bytearray(payload)
+        data[CAN_CHECKSUM_BYTE] = can_frame_checksum(message.frame_id, data)
+        return can.Message(arbitration_id=message.frame_id, data=data, is_extended_id=False)
+
+    def decode(self, frame_id: int, data: bytes) -> DecodedFrame:
+        """Check length and checksum, then decode raw signal values; a FrameError subclass otherwise."""
+        message = self._by_id.get(frame_id)
+        if message is None:
+            raise UnknownFrame(f"frame ID 0x{frame_id:03X} is not a controller frame")
+        if len(data) != message.length:
+            raise FrameLengthError(f"{message.name}: {len(data)} bytes instead of {message.length}")
+        expected = can_frame_checksum(frame_id, data)
+        if data[CAN_CHECKSUM_BYTE] != expected:
+            raise ChecksumError(
+                f"{message.name}: checksum 0x{data[CAN_CHECKSUM_BYTE]:02X}, expected 0x{expected:02X}"
+            )
+        try:
+            values = message.decode(bytes(data), decode_choices=False, scaling=False)
+        except cantools.database.DecodeError as err:
+            raise FrameError(f"{message.name}: {err}") from err
+        return DecodedFrame(message.name, {k: int(v) for k, v in values.items()})
+
+
+@dataclass
+class FrameStats:
+    """Receive-side bookkeeping of the driver (counts since the driver started)."""
+
+    rx_frames: int = 0
+    checksum_errors: int = 0
+    invalid_frames: int = 0
+    """Wrong length or a field value outside its code table."""
+    unknown_ids: int = 0
+    repeated: int = 0
+    lost: int = 0
+    incomplete_cycles: int = 0
+    transport_errors: int = 0
+    tx_frames: int = 0
+
+
+@dataclass(frozen=True)
+class _Snapshot:
+    lengths_mm: np.ndarray
+    state: ControllerState
+    fault: FaultCode
+    in_position: int
+    setpoint_counter: int
+    setpoint_valid: bool
+    estop_input: bool
+    received_s: float
+
+
+def _state(value: int) -> ControllerState:
+    try:
+        return ControllerState(value)
+    except ValueError:
+        raise FrameError(f"unknown controller state {value}") from None
+
+
+def _fault(value: int) -> FaultCode:
+    try:
+        return FaultCode(value)
+    except ValueError:
+        return FaultCode.INTERNAL
+
+
+class ControllerCan(ControllerInterface):
+    """The servo controller over CAN; ``bus_config`` goes to ``can.Bus(**bus_config)`` unchanged.
+
+    Example: ``ControllerCan({"interface": "slcan", "channel": "/dev/ttyACM0", "bitrate": 500000}, robot)``.
+    """
+
+    def __init__(
+        self,
+        bus_config: dict[str, Any],
+        robot: Robot,
+        *,
+        heartbeat_timeout_s: float = DEFAULT_HEARTBEAT_TIMEOUT_S,
+        ack_timeout_s: float = 0.5,
+        position_tolerance_mm: float = 0.01,
+        send_timeout_s: float = 0.1,
+    ) -> None:
+        self.robot = robot
+        self.heartbeat_timeout_s = heartbeat_timeout_s
+        self.ack_timeout_s = ack_timeout_s
+        self.position_tolerance_mm = position_tolerance_mm
+        self._send_timeout_s = send_timeout_s
+        self._codec = FrameCodec()
+        self.frame_stats = FrameStats()
+        self._cond = threading.Condition()
+        self._send_lock = threading.Lock()
+        self._command_lock = threading.Lock()
+        self._tx_counters: dict[str, int] = {}
+        self._rx_last: dict[int, tuple[int, float]] = {}
+        self._acks: dict[tuple[int, int], tuple[RefusalReason, ControllerState, float]] = {}
+        self._cycle: tuple[int, dict[str, dict[str, int]]] | None = None
+        self._orphan_cycle: int | None = None
+        self._snapshot: _Snapshot | None = None
+        self._last_status_s: float | None = None
+        self._state_value: ControllerState | None = None
+        self._estop_input = False
+        self.last_fault_event: tuple[FaultCode, ControllerState] | None = None
+        self._was_alive = False
+        self._stop = threading.Event()
+        try:
+            self._bus = can.Bus(**bus_config)
+        except (can.CanError, OSError, ValueError) as err:
+            raise ControllerError(f"cannot open the CAN interface {bus_config!r}: {err}") from err
+        self._closed = False
+        self._reader = threading.Thread(target=self._read_loop, name="controller-can-reader", daemon=True)
+        self._reader.start()
+        log.info("controller_can_opened", bus=str(bus_config.get("interface")), channel=bus_config.get("channel"))
+
+    # ------------------------------------------------------------------ receive side
+
+    def _read_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                msg = self._bus.recv(timeout=0.02)
+            except (can.CanError, OSError, ValueError) as err:
+                self.frame_stats.transport_errors += 1
+                log.warning("can_receive_error", error=str(err))
+                self._stop.wait(0.01)
+                continue
+            if msg is not None:
+                self._on_message(msg)
+            self._track_liveness()
+
+    def _track_liveness(self) -> None:
+        alive = self.controller_alive
+        if alive != self._was_alive:
+            self._was_alive = alive
+            (log.info if alive else log.warning)("controller_heartbeat", alive=alive)
+            with self._cond:
+                self._cond.notify_all()
+
+    def _on_message(self, msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+            return
+        self.frame_stats.rx_frames += 1
+        try:
+            frame = self._codec.decode(msg.arbitration_id, bytes(msg.data))
+        except UnknownFrame:
+            self.frame_stats.unknown_ids += 1
+            return
+        except ChecksumError as err:
+            self.frame_stats.checksum_errors += 1
+            log.warning("can_frame_rejected", error=str(err))
+            return
+        except FrameError as err:
+            self.frame_stats.invalid_frames += 1
+            log.warning("can_frame_rejected", error=str(err))
+            return
+        if not self._codec.sent_by_controller(msg.arbitration_id):
+            return
+        now = time.monotonic()
+        if not self._check_counter(msg.arbitration_id, frame.counter, now):
+            return
+        try:
+            with self._cond:
+                self._apply(frame, now)
+                self._cond.notify_all()
+        except FrameError as err:
+            self.frame_stats.invalid_frames += 1
+            log.warning("can_frame_rejected", error=str(err))
+
+    def _check_counter(self, frame_id: int, counter: int, now: float) -> bool:
+        """False for a repeated frame; counts frames lost in a counter jump; resyncs after silence."""
+        previous = self._rx_last.get(frame_id)
+        if previous is not None and now - previous[1] <= self.heartbeat_timeout_s:
+            delta = (counter - previous[0]) % CAN_COUNTER_MODULO
+            if delta == 0:
+                self.frame_stats.repeated += 1
+                return False
+            self.frame_stats.lost += delta - 1
+        self._rx_last[frame_id] = (counter, now)
+        return True
+
+    def _apply(self, frame: DecodedFrame, now: float) -> None:
+        s = frame.signals
+        if frame.name == "Status":
+            if self._cycle is not None:
+                self.frame_stats.incomplete_cycles += 1
+            self._cycle = (frame.counter, {"Status": s})
+            self._last_status_s = now
+            self._state_value = _state(s["State"])
+            self._estop_input = bool(s["EstopInput"])
+        elif frame.name in FEEDBACK_NAMES:
+            if self._cycle is None or self._cycle[0] != frame.counter:
+                if frame.counter != self._orphan_cycle:
+                    self._orphan_cycle = frame.counter
+                    self.frame_stats.incomplete_cycles += 1
+                self._cycle = None
+                return
+            self._cycle[1][frame.name] = s
+            if len(self._cycle[1]) == 1 + len(FEEDBACK_NAMES):
+                self._publish(self._cycle[1], now)
+                self._cycle = None
+        elif frame.name == "CommandAck":
+            state = _state(s["State"])
+            try:
+                reason = RefusalReason(s["Reason"])
+            except ValueError:
+                reason = RefusalReason.UNKNOWN_COMMAND
+            self._acks[(s["CommandCode"], s["RequestCounter"])] = (reason, state, now)
+            self._state_value = state
+        elif frame.name == "FaultEvent":
+            fault, state = _fault(s["FaultCode"]), _state(s["State"])
+            self.last_fault_event = (fault, state)
+            self._state_value = state
+            log.warning("controller_fault_event", fault=fault.name, state=state.name)
+
+    def _publish(self, parts: dict[str, dict[str, int]], now: float) -> None:
+        status = parts["Status"]
+        um = [parts[name][f"Leg{leg}Length"] for name in FEEDBACK_NAMES for leg in (int(name[-2]), int(name[-1]))]
+        self._snapshot = _Snapshot(
+            lengths_mm=np.asarray(um, dtype=float) / UM_PER_MM,
+            state=_state(status["State"]),
+            fault=_fault(status["FaultCode"]),
+            in_position=status["InPosition"],
+            setpoint_counter=status["SetpointCounter"],
+            setpoint_valid=bool(status["SetpointValid"]),
+            estop_input=bool(status["EstopInput"]),
+            received_s=now,
+        )
+
+    # ------------------------------------------------------------------ liveness and state
+
+    @property
+    def controller_alive(self) -> bool:
+        """True while Status frames arrive within ``heartbeat_timeout_s``."""
+        last = self._last_status_s
+        return last is not None and time.monotonic() - last <= self.heartbeat_timeout_s
+
+    def _require_alive(self) -> None:
+        if not self.controller_alive:
+            last = self._last_status_s
+            age = "never received" if last is None else f"last {time.monotonic() - last:.3f} s ago"
+            raise ControllerLost(
+                f"controller lost: no heartbeat within {self.heartbeat_timeout_s:.3f} s ({age}); "
+                "commands are refused until heartbeats resume"
+            )
+
+    def wait_for_heartbeat(self, timeout_s: float = 1.0) -> Feedback:
+        """Block until a complete heartbeat (Status + Feedback) arrives; ControllerLost after timeout_s."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while not (self.controller_alive and self._snapshot is not None
+                       and time.monotonic() - self._snapshot.received_s <= self.heartbeat_timeout_s):
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    self._require_alive()
+                    raise ControllerLost(f"no complete heartbeat (status + feedback) within {timeout_s} s")
+                self._cond.wait(min(remaining, 0.02))
+        return self.feedback()
+
+    @property
+    def state(self) -> ControllerState:
+        self._require_alive()
+        if self._state_value is None:
+            raise ControllerLost("no controller state received yet")
+        return self._state_value
+
+    @property
+    def estop_input(self) -> bool:
+        """The hardware e-stop input as the latest Status reports it (True: pressed)."""
+        self._require_alive()
+        return self._estop_input
+
+    def feedback(self) -> Feedback:
+        self._require_alive()
+        snap = self._snapshot
+        if snap is None or time.monotonic() - snap.received_s > self.heartbeat_timeout_s:
+            raise ControllerLost("no complete feedback (status + 3 feedback frames) within the heartbeat timeout")
+        return Feedback(snap.lengths_mm.copy(), snap.state, snap.fault)
+
+    # ------------------------------------------------------------------ send side
+
+    def _next_counter(self, key: str) -> int:
+        counter = self._tx_counters.get(key, 0)
+        self._tx_counters[key] = (counter + 1) % CAN_COUNTER_MODULO
+        return counter
+
+    def _send(self, name: str, signals: dict[str, int], counter: int) -> None:
+        msg = self._codec.encode(name, signals, counter)
+        try:
+            with self._send_lock:
+                self._bus.send(msg, timeout=self._send_timeout_s)
+        except can.CanError as err:
+            raise ControllerLost(f"cannot send {name}: {err}") from err
+        self.frame_stats.tx_frames += 1
+
+    def _refuse_locally(self, command: Command) -> None:
+        state = self.state
+        reason = refusal_reason(state, command)
+        if reason is RefusalReason.ACCEPTED and command is Command.FAULT_RESET and self._estop_input:
+            reason = RefusalReason.ESTOP_NOT_RELEASED
+        if reason is not RefusalReason.ACCEPTED:
+            raise CommandRefused(
+                f"{command.name} refused in state {state.name}: {reason.name} (not sent)", reason, state, "driver"
+            )
+
+    def _wait_ack(self, command: Command, counter: int) -> tuple[RefusalReason, ControllerState, float]:
+        deadline = time.monotonic() + self.ack_timeout_s
+        key = (int(command), counter)
+        with self._cond:
+            while key not in self._acks:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise CommandTimeout(
+                        f"no acknowledgement of {command.name} (counter {counter}) within {self.ack_timeout_s} s: "
+                        "the controller may or may not have executed it; read the state"
+                    )
+                self._cond.wait(remaining)
+            return self._acks.pop(key)
+
+    def _command(self, command: Command) -> None:
+        with self._command_lock:
+            self._refuse_locally(command)
+            counter = self._next_counter("Command")
+            self._send("Command", {"CommandCode": int(command)}, counter)
+            reason, state, _ = self._wait_ack(command, counter)
+        if reason is not RefusalReason.ACCEPTED:
+            raise CommandRefused(f"controller refused {command.name} in state {state.name}: {reason.name}",
+                                 reason, state, "controller")
+        log.info("controller_command", command=command.name, state=state.name)
+
+    def enable(self) -> None:
+        self._command(Command.ENABLE)
+
+    def disable(self) -> None:
+        self._command(Command.DISABLE)
+
+    def stop(self) -> None:
+        self._command(Command.STOP)
+
+    def fault_reset(self) -> None:
+        self._command(Command.FAULT_RESET)
+
+    def estop(self) -> None:
+        """Send EstopRequest every heartbeat period until ESTOP is reported (sent even if the link looks lost)."""
+        deadline = time.monotonic() + self.ack_timeout_s
+        log.warning("controller_estop_requested")
+        while True:
+            self._send("EstopRequest", {"EstopActive": 1}, self._next_counter("EstopRequest"))
+            with self._cond:
+                self._cond.wait_for(lambda: self._state_value is ControllerState.ESTOP, HEARTBEAT_PERIOD_S)
+                if self._state_value is ControllerState.ESTOP and self.controller_alive:
+                    return
+            if time.monotonic() >= deadline:
+                self._require_alive()
+                raise CommandTimeout(f"e-stop sent but ESTOP not reported within {self.ack_timeout_s} s")
+
+    def move_legs(self, lengths_mm: Sequence[float] | np.ndarray, timeout_s: float) -> np.ndarray:
+        """Move to controller lengths (mm) and wait for IN_POSITION; the measured lengths (mm).
+
+        The setpoint is checked against ``robot.leg_limits`` before anything is sent (LimitViolation). On a
+        timeout the driver sends STOP and raises MotionTimeout.
+        """
+        target = check_leg_limits(self.robot, lengths_mm)
+        um = [round(v * UM_PER_MM) for v in target]
+        if any(not 0 <= v <= MAX_UM for v in um):
+            raise FrameError(f"lengths {target.tolist()} mm do not fit the 24-bit um encoding")
+        with self._command_lock:
+            self._refuse_locally(Command.SETPOINT)
+            counter = self._next_counter("Setpoint")
+            for k, name in enumerate(SETPOINT_NAMES):
+                self._send(name, {f"Leg{2 * k + 1}Setpoint": um[2 * k], f"Leg{2 * k + 2}Setpoint": um[2 * k + 1]},
+                           counter)
+            reason, state, acked_s = self._wait_ack(Command.SETPOINT, counter)
+        if reason is not RefusalReason.ACCEPTED:
+            raise CommandRefused(f"controller refused the setpoint in state {state.name}: {reason.name}",
+                                 reason, state, "controller")
+        snap = self._wait_in_position(counter, acked_s, time.monotonic() + timeout_s, timeout_s)
+        error = np.abs(snap.lengths_mm - target)
+        if float(error.max()) > self.position_tolerance_mm:
+            raise PositionMismatch(
+                f"IN_POSITION reported but feedback differs from the setpoint by up to {error.max():.4f} mm "
+                f"(tolerance {self.position_tolerance_mm} mm)"
+            )
+        return snap.lengths_mm.copy()
+
+    def _wait_in_position(self, counter: int, acked_s: float, deadline: float, timeout_s: float) -> _Snapshot:
+        with self._cond:
+            while True:
+                self._require_alive()
+                snap = self._snapshot
+                if snap is not None and snap.received_s > acked_s:
+                    if snap.state is ControllerState.ESTOP:
+                        raise EStopActive(f"e-stop during the move ({snap.fault.name})", snap.state, snap.fault)
+                    if snap.state is ControllerState.FAULT:
+                        raise ControllerFault(f"controller fault during the move: {snap.fault.name}",
+                                              snap.state, snap.fault)
+                    ours = snap.setpoint_valid and snap.setpoint_counter == counter
+                    if snap.state is ControllerState.IN_POSITION and ours:
+                        return snap
+                    if snap.state in (ControllerState.ENABLED, ControllerState.DISABLED) or not ours:
+                        raise MotionAborted(f"move ended in state {snap.state.name} without IN_POSITION")
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._cond.wait(min(remaining, HEARTBEAT_PERIOD_S))
+        try:
+            self.stop()
+        except Exception as err:
+            log.warning("stop_after_timeout_failed", error=str(err))
+        raise MotionTimeout(f"legs not in position within {timeout_s} s; STOP sent")
+
+    def close(self) -> None:
+        """Stop the reader thread and shut the bus down (the controller state is left as it is)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        self._reader.join(timeout=2.0)
+        try:
+            self._bus.shutdown()
+        except (can.CanError, OSError) as err:
+            log.warning("can_shutdown_error", error=str(err))
+        log.info("controller_can_closed")

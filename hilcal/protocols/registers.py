@@ -1,0 +1,230 @@
+"""Modbus register map of the servo controller's parameter interface, as data.
+
+All registers are holding registers (function codes 3 read, 6 write single, 16 write multiple), 0-based
+protocol addresses. A parameter set is 42 IEEE-754 float32 values in mm, each in two registers, high word
+first and each word big-endian ("ABCD"). Order: a (leg 1 x, y, z, leg 2 x, y, z ... leg 6 z), b (same),
+l0 (legs 1..6). CRC-32 (``hilcal.protocols.checksums.crc32_ieee``) is taken over the 168 bytes of the 84
+registers, each register high byte first. See docs/protocols.md for the upload transaction.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass
+from enum import IntEnum, IntFlag
+
+from hilcal.protocols.checksums import crc32_ieee
+
+N_LEGS = 6
+PARAMETER_COUNT = 42
+REGISTERS_PER_FLOAT = 2
+PARAMETER_REGISTERS = PARAMETER_COUNT * REGISTERS_PER_FLOAT
+WORD_ORDER = "ABCD"
+"""float32 byte order on the wire: high word first, each word big-endian."""
+
+MAX_READ_REGISTERS = 125
+MAX_WRITE_REGISTERS = 123
+A_INDEX = 0
+B_INDEX = 18
+L0_INDEX = 36
+
+MAGIC = 0x4843
+"""Value of the MAGIC register ("HC"): identifies a hilcal-compatible controller."""
+PROTOCOL_VERSION = 0x0100
+"""Register-map version 1.0 (major << 8 | minor)."""
+
+PARAMETER_NAMES: tuple[str, ...] = (
+    *(f"a{leg}_{axis}_mm" for leg in range(1, N_LEGS + 1) for axis in "xyz"),
+    *(f"b{leg}_{axis}_mm" for leg in range(1, N_LEGS + 1) for axis in "xyz"),
+    *(f"l0_{leg}_mm" for leg in range(1, N_LEGS + 1)),
+)
+
+A_B_LIMIT_MM = 10_000.0
+"""|a|, |b| coordinates must not exceed this (a large hydraulic platform is a few metres across)."""
+L0_MIN_MM = 1.0
+L0_MAX_MM = 20_000.0
+"""Leg offsets (stroke-zero lengths) must lie in [L0_MIN_MM, L0_MAX_MM]."""
+
+
+class Access(IntEnum):
+    READ = 1
+    WRITE = 2
+    READ_WRITE = 3
+
+
+@dataclass(frozen=True)
+class Register:
+    """One register or a block of consecutive registers."""
+
+    name: str
+    address: int
+    count: int
+    access: Access
+    description: str
+
+    @property
+    def end(self) -> int:
+        """One past the last address of the block."""
+        return self.address + self.count
+
+
+MAGIC_REG = Register("MAGIC", 0x0000, 1, Access.READ, "0x4843 ('HC')")
+PROTOCOL_VERSION_REG = Register("PROTOCOL_VERSION", 0x0001, 1, Access.READ, "register-map version, major << 8 | minor")
+FIRMWARE_VERSION_REG = Register("FIRMWARE_VERSION", 0x0002, 1, Access.READ, "firmware version, major << 8 | minor")
+SERIAL_NUMBER_REG = Register("SERIAL_NUMBER", 0x0003, 2, Access.READ, "uint32, high word first")
+CAPABILITIES_REG = Register("CAPABILITIES", 0x0005, 1, Access.READ, "Capability bit field")
+PARAMETER_COUNT_REG = Register("PARAMETER_COUNT", 0x0006, 1, Access.READ, "number of float32 parameters (42)")
+CONTROLLER_STATE_REG = Register("CONTROLLER_STATE", 0x0010, 1, Access.READ, "ControllerState (same as CAN)")
+FAULT_CODE_REG = Register("FAULT_CODE", 0x0011, 1, Access.READ, "FaultCode (same as CAN)")
+PARAM_COMMAND_REG = Register("PARAM_COMMAND", 0x0020, 1, Access.WRITE, "ParamCommand; reads as 0")
+PARAM_STATUS_REG = Register("PARAM_STATUS", 0x0021, 1, Access.READ, "ParamStatus of the last parameter command")
+COMMIT_COUNTER_REG = Register("COMMIT_COUNTER", 0x0022, 1, Access.READ, "incremented by every commit and rollback")
+SAVE_COUNTER_REG = Register("SAVE_COUNTER", 0x0023, 1, Access.READ, "incremented by every save")
+STAGED_WRITTEN_REG = Register(
+    "STAGED_WRITTEN", 0x0024, 1, Access.READ, "distinct staging registers written since OPEN_STAGING"
+)
+LIVE_CRC32_REG = Register("LIVE_CRC32", 0x0028, 2, Access.READ, "CRC-32 of the live set, high word first")
+BACKUP_CRC32_REG = Register("BACKUP_CRC32", 0x002A, 2, Access.READ, "CRC-32 of the backup set (0 if none)")
+SAVED_CRC32_REG = Register("SAVED_CRC32", 0x002C, 2, Access.READ, "CRC-32 of the non-volatile set")
+STAGED_LENGTH_REG = Register(
+    "STAGED_LENGTH", 0x0030, 1, Access.READ_WRITE, "number of staging registers the host wrote in this transaction"
+)
+STAGED_CRC32_REG = Register(
+    "STAGED_CRC32", 0x0031, 2, Access.READ_WRITE, "CRC-32 of all 84 staging registers, high word first"
+)
+LIVE_BANK = Register("LIVE", 0x0100, PARAMETER_REGISTERS, Access.READ, "parameters in use")
+STAGING_BANK = Register("STAGING", 0x0200, PARAMETER_REGISTERS, Access.READ_WRITE, "parameters being uploaded")
+BACKUP_BANK = Register("BACKUP", 0x0300, PARAMETER_REGISTERS, Access.READ, "live set before the last commit")
+SAVED_BANK = Register("SAVED", 0x0400, PARAMETER_REGISTERS, Access.READ, "set in non-volatile memory")
+
+REGISTER_MAP: tuple[Register, ...] = (
+    MAGIC_REG,
+    PROTOCOL_VERSION_REG,
+    FIRMWARE_VERSION_REG,
+    SERIAL_NUMBER_REG,
+    CAPABILITIES_REG,
+    PARAMETER_COUNT_REG,
+    CONTROLLER_STATE_REG,
+    FAULT_CODE_REG,
+    PARAM_COMMAND_REG,
+    PARAM_STATUS_REG,
+    COMMIT_COUNTER_REG,
+    SAVE_COUNTER_REG,
+    STAGED_WRITTEN_REG,
+    LIVE_CRC32_REG,
+    BACKUP_CRC32_REG,
+    SAVED_CRC32_REG,
+    STAGED_LENGTH_REG,
+    STAGED_CRC32_REG,
+    LIVE_BANK,
+    STAGING_BANK,
+    BACKUP_BANK,
+    SAVED_BANK,
+)
+
+STAGING_L0_ADDRESS = STAGING_BANK.address + L0_INDEX * REGISTERS_PER_FLOAT
+"""First staging register of the leg offsets: the only writable part under OFFSETS_ONLY."""
+L0_REGISTERS = N_LEGS * REGISTERS_PER_FLOAT
+
+
+class Capability(IntFlag):
+    """CAPABILITIES register bits."""
+
+    FULL_GEOMETRY = 0x0001
+    """All 42 parameters (a, b, l0) are writable."""
+    OFFSETS_ONLY = 0x0002
+    """Only the six leg offsets l0 are writable; staging a/b registers refuse writes."""
+    NONVOLATILE_SAVE = 0x0004
+    ROLLBACK = 0x0008
+
+
+class ParamCommand(IntEnum):
+    """Values written to PARAM_COMMAND."""
+
+    OPEN_STAGING = 1
+    """Copy live into staging, forget what was written, clear STAGED_LENGTH and STAGED_CRC32."""
+    COMMIT = 2
+    """Check the staged set and swap it in atomically; the previous live set becomes the backup."""
+    ROLLBACK = 3
+    """Swap live and backup."""
+    SAVE = 4
+    """Copy live to non-volatile memory."""
+
+
+class ParamStatus(IntEnum):
+    """PARAM_STATUS values: the outcome of the last parameter command."""
+
+    OK = 0
+    NOT_DISABLED = 1
+    INCOMPLETE_STAGING = 2
+    LENGTH_MISMATCH = 3
+    CRC_MISMATCH = 4
+    NOT_FINITE = 5
+    LIMIT_VIOLATION = 6
+    CAPABILITY_VIOLATION = 7
+    NO_BACKUP = 8
+    NOT_SUPPORTED = 9
+    NO_COMMAND = 0xFFFF
+
+
+class ModbusExceptionCode(IntEnum):
+    """Modbus exception codes the controller answers with."""
+
+    ILLEGAL_FUNCTION = 0x01
+    ILLEGAL_DATA_ADDRESS = 0x02
+    ILLEGAL_DATA_VALUE = 0x03
+    SERVER_DEVICE_FAILURE = 0x04
+    SERVER_DEVICE_BUSY = 0x06
+    GATEWAY_TARGET_FAILED = 0x0B
+
+
+def words_from_floats(values: Sequence[float]) -> list[int]:
+    """float32 values -> registers in ABCD order (values are rounded to float32)."""
+    raw = struct.pack(f">{len(values)}f", *values)
+    return list(struct.unpack(f">{len(values) * 2}H", raw))
+
+
+def floats_from_words(words: Sequence[int]) -> list[float]:
+    """Registers in ABCD order -> float32 values; ValueError for an odd count or a word outside 0..65535."""
+    if len(words) % 2:
+        raise ValueError(f"float32 values need an even number of registers, got {len(words)}")
+    for i, w in enumerate(words):
+        if not isinstance(w, int) or not 0 <= w <= 0xFFFF:
+            raise ValueError(f"register {i} holds {w!r}, not a 16-bit word")
+    raw = struct.pack(f">{len(words)}H", *words)
+    return list(struct.unpack(f">{len(words) // 2}f", raw))
+
+
+def words_to_bytes(words: Sequence[int]) -> bytes:
+    """Registers -> bytes, each register high byte first (the CRC-32 input)."""
+    return struct.pack(f">{len(words)}H", *words)
+
+
+def crc32_of_words(words: Sequence[int]) -> int:
+    """CRC-32 of a register block as defined for STAGED_CRC32 / LIVE_CRC32."""
+    return crc32_ieee(words_to_bytes(words))
+
+
+def split_u32(value: int) -> list[int]:
+    """uint32 -> [high word, low word]."""
+    return [(value >> 16) & 0xFFFF, value & 0xFFFF]
+
+
+def join_u32(words: Sequence[int]) -> int:
+    """[high word, low word] -> uint32."""
+    return (words[0] << 16) | words[1]
+
+
+def parameter_limit_violations(values: Sequence[float]) -> list[str]:
+    """Human-readable reasons a 42-value set breaks the sanity bounds (empty list: fine)."""
+    problems = []
+    for i, (name, v) in enumerate(zip(PARAMETER_NAMES, values, strict=True)):
+        if not math.isfinite(v):
+            problems.append(f"{name} is not finite ({v})")
+        elif i < L0_INDEX and abs(v) > A_B_LIMIT_MM:
+            problems.append(f"{name} = {v} mm is beyond +-{A_B_LIMIT_MM} mm")
+        elif i >= L0_INDEX and not L0_MIN_MM <= v <= L0_MAX_MM:
+            problems.append(f"{name} = {v} mm is outside [{L0_MIN_MM}, {L0_MAX_MM}] mm")
+    return problems
