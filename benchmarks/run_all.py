@@ -1,4 +1,4 @@
-"""Run every benchmark: bench_core, then paper_study (``make bench``). ``--quick`` is passed through.
+"""Run every benchmark (``make bench``): core, protocols, CMM, paper study, diagnosis study; ``--quick`` passes through.
 
 Each script runs in its own interpreter so one cannot leak state (plot backends, logging) into the other.
 """
@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-SCRIPTS = ("bench_core.py", "paper_study.py")
+SCRIPTS = ("bench_core.py", "bench_protocols_controller.py", "bench_cmm.py", "paper_study.py", "diagnosis_study.py")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -3,7 +3,7 @@
 Speaks the line protocol of ``hilcal.protocols.cmm`` (modelled on I++ DME), one transaction at a time:
 send ``TAG Command(...)``, expect ``TAG &``, any ``TAG # data``, then ``TAG %`` or ``TAG ! Error(...)``.
 
-Robustness rules (see docs/protocols_cmm.md):
+Robustness rules (see docs/protocols.md (CMM section)):
 
 * Lines that carry no readable tag, or a malformed body under a tag other than ours, are garbage: skipped
   and logged (at most ``max_skipped_lines`` per transaction).

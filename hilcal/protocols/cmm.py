@@ -2,7 +2,7 @@
 
 Both the driver (``drivers.cmm_serial``) and the simulator (``sim_devices.cmm_server``) read these
 tables, but each side has its own parser and formatter, so the simulator cannot agree with the driver
-merely by sharing its code. The protocol is described in ``docs/protocols_cmm.md``.
+merely by sharing its code. The protocol is described in ``docs/protocols.md (CMM section)``.
 
 Line grammar (ASCII, one command or response per line)::
 

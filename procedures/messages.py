@@ -1,0 +1,88 @@
+"""The small messages a procedure yields; the engine executes each and sends back its result.
+
+A procedure is a plain generator (as in Bluesky's plans): it decides *what* to do, the engine decides
+*how* (devices, journal, prompts, progress). That split makes journaling, resume and simulation natural.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Prompt:
+    """Ask the operator to confirm something; the result is True to go on (always True with --yes)."""
+
+    key: str
+    text: str
+
+
+@dataclass(frozen=True)
+class ReadParams:
+    """The controller's live parameter set; journaled under `key`, so a resumed run gets the same answer."""
+
+    key: str
+
+
+@dataclass(frozen=True)
+class ReadLegs:
+    """The leg lengths the controller reports now (mm)."""
+
+
+@dataclass(frozen=True)
+class Enable:
+    """Servo on."""
+
+
+@dataclass(frozen=True)
+class Disable:
+    """Servo off (required before a parameter upload)."""
+
+
+@dataclass(frozen=True)
+class MoveLegs:
+    """Move to leg lengths (mm, controller units); result: the lengths reached."""
+
+    lengths_mm: tuple[float, ...]
+    label: str
+
+
+@dataclass(frozen=True)
+class Settle:
+    seconds: float
+
+
+@dataclass(frozen=True)
+class Measure:
+    """Measure the platform pose with the CMM and journal it before anything else moves; result: the row."""
+
+    phase: str
+    index: int
+    cmd_pose: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class Recall:
+    """All journaled measurement rows of these phases, in execution order."""
+
+    phases: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Upload:
+    """Transactional parameter upload (staging, CRC, read-back, commit, read-back, save), journaled."""
+
+    params: object
+    save: bool
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    label: str
+    data: dict | None = None
+
+
+def as_tuple(values: np.ndarray) -> tuple[float, ...]:
+    return tuple(float(v) for v in np.asarray(values).ravel())
