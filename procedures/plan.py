@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from hilcal import design
 from hilcal.kinematics import Geometry, inverse_kinematics
-from hilcal.robot import POSE_AXES, Robot
+from hilcal.robot import POSE_AXES, LegLimitSpec, Robot
 
 Pose = Annotated[list[float], Field(min_length=6, max_length=6)]
 
@@ -72,12 +72,21 @@ def check_plan(plan: CalibrationPlan, robot: Robot) -> None:
                                 f"{plan.approach_mm} mm) leave the leg limits [{lo}, {hi}] mm")
 
 
-def make_plan(robot: Robot, seed: int = 0, n_measure: int = 32, n_verify: int = 24) -> CalibrationPlan:
-    """D-optimal measurement poses (factorial + coordinate exchange) and evenly spread verification poses."""
-    measure = design.factorial_exchange(robot, n_measure, np.random.default_rng(seed)).poses
-    verify = design.verification_poses(robot, n_verify, seed)
+def make_plan(robot: Robot, seed: int = 0, n_measure: int = 32, n_verify: int = 24, approach_mm: float = 2.0,
+              settle_s: float = 0.5) -> CalibrationPlan:
+    """D-optimal measurement poses (factorial + coordinate exchange) and evenly spread verification poses.
+
+    The poses are designed with the lower leg limit raised by the approach distance (plus 1 mm), so the
+    approach point of every pose is reachable too.
+    """
+    lo, hi = robot.leg_limits
+    margin = LegLimitSpec(min_mm=lo + approach_mm + 1.0, max_mm=hi)
+    designable = Robot(robot.spec.model_copy(update={"leg_limits": margin}))
+    measure = design.factorial_exchange(designable, n_measure, np.random.default_rng(seed)).poses
+    verify = design.verification_poses(designable, n_verify, seed)
     plan = CalibrationPlan(robot_name=robot.name, measure_poses=np.round(measure, 6).tolist(),
-                           verify_poses=np.round(verify, 6).tolist(), seed=seed)
+                           verify_poses=np.round(verify, 6).tolist(), seed=seed, approach_mm=approach_mm,
+                           settle_s=settle_s)
     check_plan(plan, robot)
     return plan
 
@@ -99,15 +108,21 @@ def load_plan(path: Path, robot: Robot) -> CalibrationPlan:
     return plan
 
 
-def waypoints(start_pose: np.ndarray, target_pose: np.ndarray, start_legs: np.ndarray, target_legs: np.ndarray,
-              plan: CalibrationPlan) -> list[tuple[str, np.ndarray]]:
+def waypoints(geom: Geometry, start_pose: np.ndarray, target_pose: np.ndarray, plan: CalibrationPlan
+              ) -> list[tuple[str, np.ndarray]]:
     """Intermediate poses so that no leg moves more than max_step_mm at once, then an approach point.
 
-    Poses are interpolated in pose space (the workspace box is convex). The last two moves are the
-    approach point (every leg approach_mm shorter than at the target) and the target itself, so each
-    pose is reached with every leg extending: joint backlash is the same at every pose.
+    Poses are interpolated in pose space (the workspace box is convex); legs are not linear in the pose,
+    so the number of steps grows until every leg step is within the bound. The last two moves are the
+    approach point (every leg approach_mm shorter than at the target) and the target itself, so each pose
+    is reached with every leg extending: joint backlash is the same at every pose.
     """
-    largest = float(np.max(np.abs(target_legs - start_legs)))
-    n = max(1, int(np.ceil(largest / plan.max_step_mm)))
-    steps = [("transit", start_pose + (target_pose - start_pose) * k / n) for k in range(1, n)]
-    return [*steps, ("approach", target_pose), ("target", target_pose)]
+    start_legs = inverse_kinematics(geom, start_pose)
+    n = max(1, int(np.ceil(np.max(np.abs(inverse_kinematics(geom, target_pose) - start_legs)) / plan.max_step_mm)))
+    while True:
+        poses = start_pose + (target_pose - start_pose) * (np.arange(1, n + 1)[:, None] / n)
+        legs = inverse_kinematics(geom, np.vstack([start_pose, poses]))
+        if np.max(np.abs(np.diff(legs, axis=0))) <= plan.max_step_mm:
+            break
+        n += 1
+    return [*[("transit", p) for p in poses[:-1]], ("approach", target_pose), ("target", target_pose)]

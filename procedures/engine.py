@@ -1,0 +1,187 @@
+"""The engine: executes a procedure's messages against devices, journaling each result before going on.
+
+Devices are anything with the interfaces of `drivers.controller_base.ControllerInterface`,
+`drivers.controller_modbus.ControllerParams` and `drivers.cmm_base.CmmInterface`. A fault, a lost
+device or an operator abort stops motion, keeps the journal and raises `RunInterrupted` with the way
+to resume.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Callable, Generator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import structlog
+
+from drivers.controller_modbus import ParameterSet
+from hilcal.protocols.controller_states import ControllerState
+from procedures import messages as m
+from procedures.journal import Journal
+
+log = structlog.get_logger(__name__)
+
+MOTION_STATES = (ControllerState.ENABLED, ControllerState.MOVING, ControllerState.IN_POSITION)
+
+
+class RunInterrupted(RuntimeError):
+    """The run stopped before completion (abort, device fault, lost device); the journal is kept."""
+
+
+@dataclass
+class Devices:
+    robot: Any
+    controller: Any
+    params: Any
+    cmm: Any
+    cmm_alignment: np.ndarray
+    move_timeout_s: float = 120.0
+
+
+def params_sha256(params: ParameterSet) -> str:
+    return hashlib.sha256(json.dumps(params.model_dump(), sort_keys=True).encode()).hexdigest()
+
+
+def same_params(a: ParameterSet, b: ParameterSet, tol_mm: float = 1e-3) -> bool:
+    """Equal up to float32 register rounding."""
+    va = np.concatenate([np.ravel(a.a_mm), np.ravel(a.b_mm), a.l0_mm])
+    vb = np.concatenate([np.ravel(b.a_mm), np.ravel(b.b_mm), b.l0_mm])
+    return bool(np.all(np.abs(va - vb) <= tol_mm))
+
+
+class Engine:
+    """Runs one procedure; `confirm` answers prompts (None = unattended, every prompt answered yes)."""
+
+    def __init__(self, devices: Devices, journal: Journal, *, confirm: Callable[[str], bool] | None = None,
+                 on_measure: Callable[[dict], None] | None = None) -> None:
+        self.devices = devices
+        self.journal = journal
+        self.confirm = confirm
+        self.on_measure = on_measure
+        self.t0 = time.monotonic()
+
+    def run(self, procedure: Generator[Any, Any, Any]) -> Any:
+        result: Any = None
+        try:
+            while True:
+                msg = procedure.send(result)
+                result = self._dispatch(msg)
+        except StopIteration as done:
+            return done.value
+        except KeyboardInterrupt:
+            self._stop_motion("operator abort (Ctrl-C)")
+            raise RunInterrupted("aborted by the operator") from None
+        except RunInterrupted:
+            self._stop_motion("procedure interrupted")
+            raise
+        except Exception as e:
+            self._stop_motion(f"{type(e).__name__}: {e}")
+            raise RunInterrupted(f"{type(e).__name__}: {e}") from e
+
+    def _stop_motion(self, reason: str) -> None:
+        self.journal.event("interrupted", reason=reason)
+        log.error("run_interrupted", reason=reason)
+        try:
+            self.devices.controller.stop()
+        except Exception as e:
+            log.warning("stop_failed", error=str(e))
+
+    def _dispatch(self, msg: object) -> Any:
+        handler = getattr(self, f"_on_{type(msg).__name__.lower()}", None)
+        if handler is None:
+            raise TypeError(f"the engine does not know message {msg!r}")
+        return handler(msg)
+
+    def _on_prompt(self, msg: m.Prompt) -> bool:
+        answer = True if self.confirm is None else self.confirm(msg.text)
+        self.journal.event("prompt", key=msg.key, text=msg.text, answer=answer, unattended=self.confirm is None)
+        if not answer:
+            raise RunInterrupted(f"operator declined: {msg.text}")
+        return True
+
+    def _on_readparams(self, msg: m.ReadParams) -> tuple[ParameterSet, dict]:
+        key = f"params:{msg.key}"
+        stored = self.journal.step(key)
+        if stored is None:
+            identity = self.devices.params.read_identity()
+            live = self.devices.params.read_live()
+            stored = {"params": live.model_dump(), "offsets_only": bool(identity.capabilities & 0x2)
+                      and not bool(identity.capabilities & 0x1)}
+            self.journal.set_step(key, stored)
+        return ParameterSet.model_validate(stored["params"]), stored
+
+    def _on_readlegs(self, msg: m.ReadLegs) -> np.ndarray:
+        return np.asarray(self.devices.controller.feedback().lengths_mm, dtype=float)
+
+    def _on_enable(self, msg: m.Enable) -> None:
+        if self.devices.controller.state not in MOTION_STATES:
+            self.devices.controller.enable()
+        self.journal.event("enable")
+
+    def _on_disable(self, msg: m.Disable) -> None:
+        if self.devices.controller.state != ControllerState.DISABLED:
+            self.devices.controller.disable()
+        self.journal.event("disable")
+
+    def _on_movelegs(self, msg: m.MoveLegs) -> np.ndarray:
+        reached = self.devices.controller.move_legs(np.array(msg.lengths_mm), self.devices.move_timeout_s)
+        log.debug("moved", label=msg.label)
+        return np.asarray(reached, dtype=float)
+
+    def _on_settle(self, msg: m.Settle) -> None:
+        time.sleep(msg.seconds)
+
+    def _on_measure(self, msg: m.Measure) -> dict:
+        row = self.journal.measurement(msg.phase, msg.index)
+        if row is not None:
+            return row
+        legs = np.asarray(self.devices.controller.feedback().lengths_mm, dtype=float)
+        pm = self.devices.cmm.measure_pose(self.devices.robot, self.devices.cmm_alignment,
+                                           expected_pose=np.array(msg.cmd_pose))
+        detail = {"sphere_fit_rms_mm": float(np.max(pm.pose_fit.rms_residual_mm))}
+        row = self.journal.add_measurement(msg.phase, msg.index, time.monotonic() - self.t0, np.array(msg.cmd_pose),
+                                           legs, np.asarray(pm.pose, dtype=float), detail)
+        log.info("measured", phase=msg.phase, index=msg.index)
+        if self.on_measure is not None:
+            self.on_measure(row)
+        return row
+
+    def _on_recall(self, msg: m.Recall) -> list[dict]:
+        return self.journal.measurements(msg.phases)
+
+    def _on_checkpoint(self, msg: m.Checkpoint) -> None:
+        self.journal.set_step(f"checkpoint:{msg.label}", msg.data or {})
+
+    def _on_upload(self, msg: m.Upload) -> dict:
+        """Idempotent across a crash: a started upload is settled by reading the live set back."""
+        params: ParameterSet = msg.params
+        sha = params_sha256(params)
+        state = self.journal.step("upload")
+        client = self.devices.params
+        if state is not None and state["sha256"] == sha and state["outcome"] in ("started", "committed"):
+            live = client.read_live()
+            if same_params(live, params):
+                state = {**state, "outcome": "committed"}
+                self.journal.set_step("upload", state)
+            elif not same_params(live, ParameterSet.model_validate(state["previous"])):
+                raise RunInterrupted("the controller's live set is neither the previous nor the new one: "
+                                     "check the controller before going on")
+            else:
+                state = None
+        if state is None:
+            previous = client.read_live()
+            self.journal.set_step("upload", {"sha256": sha, "outcome": "started", "previous": previous.model_dump()})
+            record = client.upload(params, save=False)
+            state = {"sha256": sha, "outcome": "committed", "previous": previous.model_dump(),
+                     "record": record.model_dump(mode="json")}
+            self.journal.set_step("upload", state)
+        if msg.save and state["outcome"] != "saved":
+            save_record = client.save()
+            state = {**state, "outcome": "saved", "save_record": save_record.model_dump(mode="json")}
+            self.journal.set_step("upload", state)
+        self.journal.event("upload", outcome=state["outcome"], sha256=sha)
+        return state

@@ -1,0 +1,165 @@
+"""`hilcal run`: the shop-floor runner. Opens the station's devices, runs the calibration procedure under
+the engine with a journal, and writes the recording, the report and the calibration records.
+
+Exit codes: 0 complete, 2 bad input, 3 device fault, abort or refusal (journal kept, resumable).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import json
+import logging
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import structlog
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from hilcal.metrics import AccuracySummary, pose_errors
+from hilcal.recording import write_recording
+from hilcal.robot import Robot
+from procedures.calibration_procedure import (
+    AFTER_PHASE,
+    PRE_PHASES,
+    ProcedureResult,
+    RunOptions,
+    calibration_procedure,
+    recording_from_rows,
+)
+from procedures.engine import Devices, Engine, RunInterrupted
+from procedures.journal import Journal
+from procedures.plan import CalibrationPlan, save_plan
+
+EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 2, 3
+
+
+@dataclass(frozen=True)
+class RunExit:
+    code: int
+    run_id: str
+    message: str
+    report_path: Path | None = None
+
+
+def new_run_id() -> str:
+    return dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ-") + uuid.uuid4().hex[:6]
+
+
+def configure_logs(out_dir: Path) -> None:
+    """Structured JSON logs into the run folder; only warnings reach the console."""
+    log_file = (out_dir / "run.log").open("a")
+    structlog.configure(
+        processors=[structlog.processors.add_log_level, structlog.processors.TimeStamper(fmt="iso"),
+                    structlog.processors.JSONRenderer()],
+        wrapper_class=structlog.make_filtering_bound_logger(logging.INFO),
+        logger_factory=structlog.WriteLoggerFactory(log_file),
+    )
+
+
+@contextlib.contextmanager
+def _progress(total: int, done: int) -> Iterator[Callable[[dict], None]]:
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress(*columns, transient=False) as progress:
+        task = progress.add_task("measuring poses", total=total, completed=done)
+
+        def advance(row: dict) -> None:
+            progress.update(task, advance=1, description=f"{row['phase']} pose {row['index'] + 1}")
+
+        yield advance
+
+
+def _per_pose(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    meas = np.array([r["meas"] for r in rows])
+    cmd = np.array([r["cmd"] for r in rows])
+    return pose_errors(meas, cmd)
+
+
+def _summary(rows: list[dict]) -> AccuracySummary:
+    return AccuracySummary.of(np.array([r["meas"] for r in rows]), np.array([r["cmd"] for r in rows]))
+
+
+def run_with_devices(devices: Devices, journal: Journal, plan: CalibrationPlan, robot: Robot, options: RunOptions,
+                     out_dir: Path, run_id: str, confirm: Callable[[str], bool] | None,
+                     started_at: str) -> RunExit:
+    """Run (or continue) the procedure on open devices and write every output; never raises on device faults."""
+    done = len(journal.measurements((*PRE_PHASES, AFTER_PHASE)))
+    total = len(plan.measure_poses) + 2 * len(plan.verify_poses)
+    try:
+        with _progress(total, done) as advance:
+            engine = Engine(devices, journal, confirm=confirm, on_measure=advance)
+            result: ProcedureResult = engine.run(calibration_procedure(plan, robot, options))
+    except RunInterrupted as e:
+        journal.set_status("interrupted")
+        return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} stopped: {e}. The journal is kept; continue with "
+                       f"`hilcal run --resume {run_id} --out {out_dir}`" + (" --sim" if options_sim(journal) else ""))
+    pre_rows = journal.measurements(PRE_PHASES)
+    write_recording(out_dir / "recording.csv", recording_from_rows(pre_rows, robot))
+    report_path = _write_report(out_dir, run_id, plan, robot, options, result, started_at, journal)
+    journal.set_status(result.status)
+    if result.status != "complete":
+        return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} {result.status}: {'; '.join(result.problems)} "
+                       "(nothing uploaded; use --force to upload anyway)", report_path)
+    return RunExit(EXIT_OK, run_id, f"run {run_id} complete", report_path)
+
+
+def options_sim(journal: Journal) -> bool:
+    return bool(journal.run_info()["options"].get("sim"))
+
+
+def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robot, options: RunOptions,
+                  result: ProcedureResult, started_at: str, journal: Journal) -> Path:
+    from hilcal.run_report import RunReport, write_run_report
+
+    verify_rows = journal.measurements(("verify",))
+    after_rows = result.after_rows
+    comp = result.compensation
+    report = RunReport(
+        status=result.status, run_id=run_id, uploaded=result.upload is not None, estimator=options.estimator,
+        robot_name=robot.name, plan_sha256=plan.sha256(), started_at=started_at,
+        finished_at=dt.datetime.now(dt.UTC).isoformat(),
+        verify_before=_summary(verify_rows), verify_after=_summary(after_rows) if after_rows else None,
+        per_pose_before=_per_pose(verify_rows), per_pose_after=_per_pose(after_rows) if after_rows else None,
+        identifications={k: o.identification for k, o in result.outcomes.items()},
+        predicted_after={k: o.after for k, o in result.outcomes.items() if o.after is not None},
+        chosen=options.estimator,
+        plausibility={"ok": not result.problems, "violations": result.problems,
+                      "joint_bound_mm": options.joint_bound_mm, "offset_bound_mm": options.offset_bound_mm},
+        compensation={} if comp is None else {
+            "mode": comp.mode,
+            "uploaded_parameters": {"a_mm": comp.parameters.a.tolist(), "b_mm": comp.parameters.b.tolist(),
+                                    "l0_mm": comp.parameters.l0.tolist()},
+            "predicted": comp.predicted.brief(),
+            "uncompensated": None if comp.uncompensated is None else comp.uncompensated.brief(),
+        },
+        upload=result.upload,
+    )
+    json_path, _ = write_run_report(out_dir, report)
+    journal.event("report", path=str(json_path))
+    return json_path
+
+
+def plan_for_run(journal: Journal, plan: CalibrationPlan | None, run_id: str | None, options: dict
+                 ) -> tuple[str, CalibrationPlan, dict]:
+    """Start a new run in the journal, or check and reload the one being resumed."""
+    try:
+        info = journal.run_info()
+    except Exception:
+        info = None
+    if run_id is not None:
+        if info is None or info["run_id"] != run_id:
+            found = "no run" if info is None else f"run {info['run_id']}"
+            raise ValueError(f"cannot resume {run_id}: {journal.path} holds {found}")
+        return run_id, CalibrationPlan.model_validate_json(info["plan_json"]), info["options"]
+    if info is not None:
+        raise ValueError(f"{journal.path.parent} already holds run {info['run_id']} ({info['status']}): "
+                         f"resume it with --resume {info['run_id']} or choose another --out folder")
+    assert plan is not None
+    new_id = new_run_id()
+    journal.start(new_id, plan.sha256(), json.dumps(plan.model_dump()), options)
+    save_plan(plan, journal.path.parent / "plan.json")
+    return new_id, plan, options
+
