@@ -298,10 +298,15 @@ def read_parameter_file(path: Path | str) -> ParameterSet:
     try:
         return ParameterSet.model_validate(data)
     except ValidationError as err:
-        problems = "; ".join(
-            f"{'.'.join(str(p) for p in e['loc']) or '(top level)'}: {e['msg']}" for e in err.errors()
-        )
-        raise ParameterFileError(f"{path}: not a valid parameter set: {problems}") from None
+        problems = "; ".join(f"{_location(e['loc'])}: {e['msg']}" for e in err.errors())
+        raise ParameterFileError(f"{path}: not a valid parameter set (indices from 0): {problems}") from None
+
+
+def _location(loc: tuple[int | str, ...]) -> str:
+    """A pydantic error location as JSON-path-like text: a_mm[2][1]."""
+    if not loc:
+        return "(top level)"
+    return str(loc[0]) + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc[1:])
 
 
 def parameter_diff(live: ParameterSet, new: ParameterSet) -> list[dict[str, Any]]:
