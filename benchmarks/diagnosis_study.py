@@ -580,11 +580,12 @@ def write_doc(summary: dict[str, Any], plan: StudyPlan, elapsed_s: float, comman
     lines.append("")
     ab = summary["thermal_sensor_ablation"]
     lines += [
-        "### Thermal expansion: why after/floor grows with the magnitude\n",
+        "### Thermal expansion: the temperature input\n",
         "The thermal candidate is driven by the recorded `temp_c`, which carries the rig's temperature-sensor "
-        "noise (0.05 K). At scale s the legs grow ~50·s µm/K, so that noise becomes ~2.5·s µm of leg-length "
-        "error per row that no model of the recording can remove, while the floor (the rig's true pose) does "
-        "not see it. Ablation in this run: the same thermal recordings at scale "
+        "noise (0.05 K). At scale s the legs grow ~50·s µm/K, so that noise would become ~2.5·s µm of leg-length "
+        "error per row, which the floor (the rig's true pose) does not see; `hilcal.physics` therefore smooths "
+        "`temp_c` over neighbouring rows (local linear, 7 rows: leg temperature changes over minutes) before "
+        "using it. Ablation in this run: the same thermal recordings at scale "
         f"{ab['scale']:g} with a perfect sensor (`sensor_noise_k = 0`):\n",
         "| temperature sensor | correct | after/floor median | after/floor max |",
         "|---|---|---|---|",

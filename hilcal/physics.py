@@ -13,12 +13,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import savgol_filter
 
 from hilcal.kinematics import N_LEGS, Geometry, gravity_wrench, inverse_kinematics, leg_forces
 from hilcal.recording import Recording
 from hilcal.robot import Robot
 
 MIN_TEMPERATURE_RANGE_K = 0.2
+TEMPERATURE_WINDOW = 7
 REFERENCE_TEMPERATURE_C = 20.0
 """ISO 1 reference temperature: the nominal geometry is taken to hold at 20 °C."""
 
@@ -51,7 +53,7 @@ class EffectContext:
             direction[k, still] = direction[k - 1, still] if k else 1.0
         return cls(
             legs_mm=rec.legs_mm, stroke_mm=rec.legs_mm - robot.l0, force_kn=force, direction=direction,
-            temp_c=rec.temp_c, time_s=rec.time_s,
+            temp_c=None if rec.temp_c is None else smooth_temperature(rec.temp_c), time_s=rec.time_s,
         )
 
     def rows(self, mask: np.ndarray) -> EffectContext:
@@ -60,6 +62,18 @@ class EffectContext:
             direction=self.direction[mask], temp_c=None if self.temp_c is None else self.temp_c[mask],
             time_s=self.time_s[mask],
         )
+
+
+def smooth_temperature(temp_c: np.ndarray, window: int = TEMPERATURE_WINDOW) -> np.ndarray:
+    """Local-linear smoothing over neighbouring rows (in execution order) of a noisy temperature reading.
+
+    Hydraulic legs are tons of steel: their temperature changes over minutes, so row-to-row scatter in
+    temp_c is sensor noise, which would otherwise enter the thermal regressor (errors in variables).
+    """
+    n = len(temp_c)
+    if n < 5:
+        return np.asarray(temp_c, dtype=float)
+    return savgol_filter(np.asarray(temp_c, dtype=float), min(window, n - (1 - n % 2)), 1, mode="interp")
 
 
 def _per_leg(values: np.ndarray) -> np.ndarray:
