@@ -1,4 +1,5 @@
-"""The `hilcal` command line: identify, diagnose, identifiability, design, simulate, demo.
+"""The `hilcal` command line: run, sim, history, upload, rollback, identify, diagnose, identifiability, design,
+simulate, demo.
 
 Exit codes: 0 ok, 2 bad input (robot file, recording, options). Units: mm and degrees.
 """
@@ -134,6 +135,139 @@ def identify(
     ident = outcome.identification
     out.print(f"fit: max |residual| {ident.max_abs_residual:.4f} mm, RMS {ident.rms_residual:.4f} mm, "
               f"{ident.n_iterations} evaluations, converged={ident.converged}")
+
+
+@app.command()
+def run(
+    out_dir: Annotated[Path, typer.Option("--out", help="run folder: journal, logs, recording, report")],
+    sim: Annotated[bool, typer.Option("--sim", help="start the simulated devices and run against them")] = False,
+    station: Annotated[Path | None, typer.Option(help="station TOML (CAN, Modbus, CMM, robot)")] = None,
+    sim_config: Annotated[Path | None, typer.Option(help="simulator TOML for --sim")] = None,
+    resume: Annotated[str | None, typer.Option(help="continue the interrupted run RUN_ID in --out")] = None,
+    yes: Annotated[bool, typer.Option("--yes", help="unattended: answer every prompt yes")] = False,
+    estimator: Annotated[EstimatorChoice, typer.Option(help="parameters to upload")] = EstimatorChoice.ls,
+    force: Annotated[bool, typer.Option(help="upload even an implausible parameter set")] = False,
+    robot: RobotOption = None,
+    plan: Annotated[Path | None, typer.Option(help="re-run a saved plan.json")] = None,
+    seed: int = 0,
+    records: Annotated[Path | None, typer.Option(help="records database (default $HILCAL_RECORDS)")] = None,
+    operator: Annotated[str | None, typer.Option(help="name recorded with the run")] = None,
+) -> None:
+    """Measure, identify, upload (transactionally) and verify: the whole calibration at the machine."""
+    from procedures.runner import RunRequest, execute_run
+
+    if resume is None and not sim and station is None:
+        _fail("give --station FILE for real hardware, or --sim for the simulated devices")
+    request = RunRequest(out_dir=out_dir, sim=sim, station_path=station, sim_config=sim_config, resume=resume,
+                         yes=yes, estimator=estimator.value, force=force, robot_path=robot, plan_path=plan,
+                         seed=seed, records_path=records, operator=operator)
+    result = execute_run(request, None if yes else (lambda text: typer.confirm(text, default=False)))
+    (out if result.code == 0 else err).print(result.message, highlight=False)
+    if result.report_path is not None:
+        out.print(f"report: {result.report_path} and {result.report_path.with_suffix('.html')}")
+    raise typer.Exit(result.code)
+
+
+@app.command("sim")
+def sim_command(
+    config: Annotated[Path | None, typer.Option(help="simulator TOML (robot, rig errors, noise, faults)")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print the channels as one JSON line")] = False,
+    state_file: Annotated[Path | None, typer.Option(help="keep controller and rig state in this file")] = None,
+    seed: Annotated[int | None, typer.Option(help="rig seed")] = None,
+) -> None:
+    """Start every simulated device (controller on SLCAN/pty + Modbus TCP, CMM on a pty) until Ctrl-C."""
+    from sim_devices.launcher import main as sim_main
+
+    argv = [*(["--config", str(config)] if config else []), *(["--json"] if as_json else []),
+            *(["--state-file", str(state_file)] if state_file else []), *(["--seed", str(seed)] if seed is not None
+                                                                          else [])]
+    raise typer.Exit(sim_main(argv))
+
+
+def _params_client(station: Path):
+    from drivers.controller_modbus import ControllerParams
+    from procedures.station import StationConfigError, load_station
+
+    try:
+        mb = load_station(station).modbus
+    except StationConfigError as e:
+        _fail(str(e))
+    return ControllerParams(mb.host, mb.port, serial_port=mb.serial_port, baudrate=mb.baudrate,
+                            device_id=mb.device_id, timeout_s=mb.timeout_s)
+
+
+def _records(path: Path | None):
+    from procedures.records import Records
+    from procedures.runner import default_records_path
+
+    return Records(path or default_records_path())
+
+
+@app.command()
+def history(
+    limit: int = 20,
+    records: Annotated[Path | None, typer.Option(help="records database (default $HILCAL_RECORDS)")] = None,
+) -> None:
+    """Past runs, parameter sets and uploads from the calibration records."""
+    from procedures.records import format_history
+
+    with _records(records) as db:
+        out.print(format_history(db.history(limit)), highlight=False)
+
+
+@app.command()
+def upload(
+    params_file: Annotated[Path, typer.Argument(help="parameter set JSON {a_mm, b_mm, l0_mm}")],
+    station: Annotated[Path, typer.Option(help="station TOML (its [modbus] section is used)")],
+    save: Annotated[bool, typer.Option(help="also save to non-volatile memory")] = False,
+    yes: Annotated[bool, typer.Option("--yes", help="do not ask for confirmation")] = False,
+    records: Annotated[Path | None, typer.Option(help="records database")] = None,
+    operator: Annotated[str | None, typer.Option(help="name recorded with the upload")] = None,
+) -> None:
+    """Stand-alone controller parameter upload: validate, show the diff, confirm, upload, read back, record."""
+    from drivers.controller_modbus import ParamsError
+    from procedures.records import ParameterFileError, UploadDeclined, format_diff, upload_parameter_file
+
+    client = _params_client(station)
+    try:
+        with _records(records) as db:
+            result = upload_parameter_file(client, params_file, db, operator or "", save, yes,
+                                           lambda text: typer.confirm(text, default=False))
+    except ParameterFileError as e:
+        _fail(str(e))
+    except UploadDeclined as e:
+        err.print(str(e))
+        raise typer.Exit(1) from None
+    except ParamsError as e:
+        err.print(f"[bold red]upload failed:[/] {e}", highlight=False)
+        raise typer.Exit(3) from None
+    finally:
+        client.close()
+    out.print(format_diff(result["diff"]), highlight=False)
+    record = result["record"] or {}
+    out.print(f"outcome: {record.get('outcome', 'unchanged')}; sha256 {result['file_sha256'][:16]}")
+
+
+@app.command()
+def rollback(
+    station: Annotated[Path, typer.Option(help="station TOML (its [modbus] section is used)")],
+    records: Annotated[Path | None, typer.Option(help="records database")] = None,
+    operator: Annotated[str | None, typer.Option(help="name recorded with the rollback")] = None,
+) -> None:
+    """Restore the controller's previous parameter set (its backup bank), and record it."""
+    from drivers.controller_modbus import ParamsError
+    from procedures.records import rollback_controller
+
+    client = _params_client(station)
+    try:
+        with _records(records) as db:
+            record = rollback_controller(client, db, operator or "")
+    except ParamsError as e:
+        err.print(f"[bold red]rollback failed:[/] {e}", highlight=False)
+        raise typer.Exit(3) from None
+    finally:
+        client.close()
+    out.print(f"rollback: {record.get('outcome')}")
 
 
 @app.command()

@@ -98,6 +98,7 @@ def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptio
     """Measure, identify, upload, verify. Returns what the report needs."""
     yield m.Prompt("spheres", "Mount the three platform and three base tooling spheres; CMM homed and aligned?")
     yield m.Prompt("area", "Clear the area around the platform: it is about to move. Go on?")
+    yield m.PrepareCmm()
     before, info = yield m.ReadParams("before")
     geom = controller_geometry(before)
     pose = forward_kinematics(geom.ik_geometry(), (yield m.ReadLegs()), robot.home)[0]

@@ -1,7 +1,8 @@
 """The engine: executes a procedure's messages against devices, journaling each result before going on.
 
-Devices are anything with the interfaces of `drivers.controller_base.ControllerInterface`,
-`drivers.controller_modbus.ControllerParams` and `drivers.cmm_base.CmmInterface`. A fault, a lost
+Devices (`procedures.station.Devices`) hold a `drivers.controller_base.ControllerInterface`, a
+`drivers.controller_modbus.ControllerParams` and a `drivers.cmm_base.CmmInterface`, the robot and the
+CMM alignment. A fault, a lost
 device or an operator abort stops motion, keeps the journal and raises `RunInterrupted` with the way
 to resume.
 """
@@ -12,7 +13,6 @@ import hashlib
 import json
 import time
 from collections.abc import Callable, Generator
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -32,16 +32,6 @@ class RunInterrupted(RuntimeError):
     """The run stopped before completion (abort, device fault, lost device); the journal is kept."""
 
 
-@dataclass
-class Devices:
-    robot: Any
-    controller: Any
-    params: Any
-    cmm: Any
-    cmm_alignment: np.ndarray
-    move_timeout_s: float = 120.0
-
-
 def params_sha256(params: ParameterSet) -> str:
     return hashlib.sha256(json.dumps(params.model_dump(), sort_keys=True).encode()).hexdigest()
 
@@ -56,9 +46,10 @@ def same_params(a: ParameterSet, b: ParameterSet, tol_mm: float = 1e-3) -> bool:
 class Engine:
     """Runs one procedure; `confirm` answers prompts (None = unattended, every prompt answered yes)."""
 
-    def __init__(self, devices: Devices, journal: Journal, *, confirm: Callable[[str], bool] | None = None,
-                 on_measure: Callable[[dict], None] | None = None) -> None:
+    def __init__(self, devices: Any, journal: Journal, *, confirm: Callable[[str], bool] | None = None,
+                 on_measure: Callable[[dict], None] | None = None, move_timeout_s: float = 120.0) -> None:
         self.devices = devices
+        self.move_timeout_s = move_timeout_s
         self.journal = journal
         self.confirm = confirm
         self.on_measure = on_measure
@@ -117,6 +108,11 @@ class Engine:
     def _on_readlegs(self, msg: m.ReadLegs) -> np.ndarray:
         return np.asarray(self.devices.controller.feedback().lengths_mm, dtype=float)
 
+    def _on_preparecmm(self, msg: m.PrepareCmm) -> None:
+        self.devices.cmm.start_session()
+        self.devices.cmm.home()
+        self.journal.event("cmm_ready")
+
     def _on_enable(self, msg: m.Enable) -> None:
         if self.devices.controller.state not in MOTION_STATES:
             self.devices.controller.enable()
@@ -128,7 +124,7 @@ class Engine:
         self.journal.event("disable")
 
     def _on_movelegs(self, msg: m.MoveLegs) -> np.ndarray:
-        reached = self.devices.controller.move_legs(np.array(msg.lengths_mm), self.devices.move_timeout_s)
+        reached = self.devices.controller.move_legs(np.array(msg.lengths_mm), self.move_timeout_s)
         log.debug("moved", label=msg.label)
         return np.asarray(reached, dtype=float)
 

@@ -32,6 +32,11 @@ class ReadLegs:
 
 
 @dataclass(frozen=True)
+class PrepareCmm:
+    """Start the CMM session and home the machine before the first probe."""
+
+
+@dataclass(frozen=True)
 class Enable:
     """Servo on."""
 

@@ -10,10 +10,12 @@ import contextlib
 import datetime as dt
 import json
 import logging
+import os
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import structlog
@@ -21,7 +23,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from hilcal.metrics import AccuracySummary, pose_errors
 from hilcal.recording import write_recording
-from hilcal.robot import Robot
+from hilcal.robot import Robot, RobotFileError, load_robot
 from procedures.calibration_procedure import (
     AFTER_PHASE,
     PRE_PHASES,
@@ -30,9 +32,9 @@ from procedures.calibration_procedure import (
     calibration_procedure,
     recording_from_rows,
 )
-from procedures.engine import Devices, Engine, RunInterrupted
+from procedures.engine import Engine, RunInterrupted
 from procedures.journal import Journal
-from procedures.plan import CalibrationPlan, save_plan
+from procedures.plan import CalibrationPlan, PlanError, load_plan, make_plan, save_plan
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 2, 3
 
@@ -82,7 +84,7 @@ def _summary(rows: list[dict]) -> AccuracySummary:
     return AccuracySummary.of(np.array([r["meas"] for r in rows]), np.array([r["cmd"] for r in rows]))
 
 
-def run_with_devices(devices: Devices, journal: Journal, plan: CalibrationPlan, robot: Robot, options: RunOptions,
+def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robot: Robot, options: RunOptions,
                      out_dir: Path, run_id: str, confirm: Callable[[str], bool] | None,
                      started_at: str) -> RunExit:
     """Run (or continue) the procedure on open devices and write every output; never raises on device faults."""
@@ -90,7 +92,8 @@ def run_with_devices(devices: Devices, journal: Journal, plan: CalibrationPlan, 
     total = len(plan.measure_poses) + 2 * len(plan.verify_poses)
     try:
         with _progress(total, done) as advance:
-            engine = Engine(devices, journal, confirm=confirm, on_measure=advance)
+            engine = Engine(devices, journal, confirm=confirm, on_measure=advance,
+                            move_timeout_s=devices.station.motion.move_timeout_s)
             result: ProcedureResult = engine.run(calibration_procedure(plan, robot, options))
     except RunInterrupted as e:
         journal.set_status("interrupted")
@@ -125,7 +128,7 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
         per_pose_before=_per_pose(verify_rows), per_pose_after=_per_pose(after_rows) if after_rows else None,
         identifications={k: o.identification for k, o in result.outcomes.items()},
         predicted_after={k: o.after for k, o in result.outcomes.items() if o.after is not None},
-        chosen=options.estimator,
+        chosen=result.chosen,
         plausibility={"ok": not result.problems, "violations": result.problems,
                       "joint_bound_mm": options.joint_bound_mm, "offset_bound_mm": options.offset_bound_mm},
         compensation={} if comp is None else {
@@ -163,3 +166,98 @@ def plan_for_run(journal: Journal, plan: CalibrationPlan | None, run_id: str | N
     save_plan(plan, journal.path.parent / "plan.json")
     return new_id, plan, options
 
+
+@dataclass(frozen=True)
+class RunRequest:
+    """What `hilcal run` was asked to do."""
+
+    out_dir: Path
+    sim: bool = False
+    station_path: Path | None = None
+    sim_config: Path | None = None
+    resume: str | None = None
+    yes: bool = False
+    estimator: str = "ls"
+    force: bool = False
+    robot_path: Path | None = None
+    plan_path: Path | None = None
+    seed: int = 0
+    records_path: Path | None = None
+    operator: str | None = None
+
+
+def default_records_path() -> Path:
+    env = os.environ.get("HILCAL_RECORDS")
+    return Path(env) if env else Path.home() / ".local" / "share" / "hilcal" / "records.sqlite"
+
+
+def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None) -> RunExit:
+    """Start or resume a run in req.out_dir; never raises for bad input or device trouble (see RunExit.code)."""
+    from procedures.records import Records
+    from procedures.station import (
+        DeviceOpenError,
+        StationConfigError,
+        load_station,
+        open_devices,
+        station_from_channels,
+    )
+    from sim_devices.launcher import SimStartError, spawn_sim_subprocess, stop_sim_subprocess
+
+    req.out_dir.mkdir(parents=True, exist_ok=True)
+    configure_logs(req.out_dir)
+    started_at = dt.datetime.now(dt.UTC).isoformat()
+    with Journal(req.out_dir / "journal.sqlite") as journal, contextlib.ExitStack() as stack:
+        try:
+            if req.resume is None:
+                robot = load_robot(req.robot_path)
+                plan = (load_plan(req.plan_path, robot) if req.plan_path else
+                        make_plan(robot, req.seed, settle_s=0.05 if req.sim else 0.5))
+                options = {"sim": req.sim, "estimator": req.estimator, "force": req.force,
+                           "robot_path": None if req.robot_path is None else str(req.robot_path),
+                           "station_path": None if req.station_path is None else str(req.station_path),
+                           "sim_config": None if req.sim_config is None else str(req.sim_config)}
+                run_id, plan, options = plan_for_run(journal, plan, None, options)
+            else:
+                run_id, plan, options = plan_for_run(journal, None, req.resume, {})
+                robot = load_robot(options["robot_path"])
+            if options["sim"]:
+                proc, channels = spawn_sim_subprocess(options["sim_config"],
+                                                      ["--state-file", str(req.out_dir / "sim_state.json")],
+                                                      log_path=req.out_dir / "sim.log")
+                stack.callback(stop_sim_subprocess, proc)
+                station = station_from_channels(channels, options["robot_path"])
+            else:
+                station = load_station(req.station_path or options["station_path"])
+        except (RobotFileError, PlanError, StationConfigError, ValueError) as e:
+            return RunExit(EXIT_BAD_INPUT, "", str(e))
+        except SimStartError as e:
+            return RunExit(EXIT_INTERRUPTED, "", f"simulated devices did not start: {e}")
+        try:
+            devices = stack.enter_context(open_devices(station))
+        except DeviceOpenError as e:
+            return RunExit(EXIT_INTERRUPTED, run_id, f"cannot open the station's devices: {e}; the journal is kept, "
+                           f"continue with `hilcal run --resume {run_id} --out {req.out_dir}`")
+        run_options = RunOptions(estimator=options["estimator"], force=bool(options["force"]))
+        with Records(req.records_path or default_records_path()) as records:
+            if records.run(run_id) is None:
+                records.record_run(run_id, started_at=started_at, status="running", robot_name=robot.name,
+                                   plan_sha256=plan.sha256(), operator=req.operator, out_dir=str(req.out_dir),
+                                   estimator=run_options.estimator)
+            result = run_with_devices(devices, journal, plan, robot, run_options, req.out_dir, run_id, confirm,
+                                      started_at)
+            _record_outcome(records, journal, run_id, req.operator, result)
+        return result
+
+
+def _record_outcome(records: Any, journal: Journal, run_id: str, operator: str | None, result: RunExit) -> None:
+    status = journal.run_info()["status"]
+    fields: dict[str, Any] = {"status": status, "finished_at": dt.datetime.now(dt.UTC).isoformat()}
+    if result.report_path is not None:
+        report = json.loads(result.report_path.read_text())
+        fields["verify_before"] = report["verification"]["before"]
+        fields["verify_after"] = report["verification"]["after"]
+    records.update_run(run_id, **fields)
+    upload = journal.step("upload")
+    if upload is not None and upload.get("record") and not journal.step("recorded_upload"):
+        records.record_upload(upload["record"], operator, run_id=run_id)
+        journal.set_step("recorded_upload", True)

@@ -1,0 +1,319 @@
+"""Station configuration and device factory: the same code drives the simulator and the shop floor.
+
+A station file (TOML) says where the devices are; relative ``robot`` and ``records`` paths are relative to
+the file. ``open_devices(station)`` opens the controller (CAN), its parameter interface (Modbus) and the CMM,
+checks that the controller answers, and closes everything again on exit or if any of them fails to open.
+
+Example::
+
+    robot = "robots/plant3.toml"       # omit for the built-in paper Table 1 robot
+    records = "records"                # where runs are recorded (optional)
+    operator = "J. Smith"              # optional
+
+    [can]                              # passed unchanged to can.Bus(**can)
+    interface = "socketcan"
+    channel = "can0"
+    bitrate = 500000
+
+    [modbus]                           # TCP: host/port; RTU: serial_port/baudrate
+    host = "192.168.10.20"
+    port = 502
+    device_id = 1
+    timeout_s = 1.0
+
+    [cmm]
+    url = "/dev/ttyUSB0"               # any pyserial URL, e.g. socket://10.0.0.5:1294
+    alignment = [1250.0, -3400.0, -820.0, 0.0, 0.0, 90.0]   # T_cmm<-base: [x, y, z, roll, pitch, yaw] or 4x4
+    [cmm.serial]                       # drivers.cmm_serial.SerialCmmConfig
+    command_timeout_s = 30.0
+    [cmm.probing]                      # drivers.cmm_base.ProbingConfig
+    probe_sigma_mm = 0.002
+
+    [motion]
+    move_timeout_s = 120.0
+    heartbeat_timeout_s = 0.1
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+import structlog
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from drivers.cmm_base import ProbingConfig, as_transform
+from drivers.cmm_serial import SerialCmm, SerialCmmConfig
+from drivers.controller_can import ControllerCan
+from drivers.controller_modbus import ControllerParams
+from hilcal.robot import Robot, RobotFileError, load_robot
+
+log = structlog.get_logger(__name__)
+
+class StationConfigError(ValueError):
+    """A station file that cannot be read or does not describe a usable station."""
+
+
+class DeviceOpenError(RuntimeError):
+    """A device of the station could not be opened (the others were closed again)."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class CanSection(BaseModel):
+    """python-can bus settings, passed unchanged to ``can.Bus(**...)`` (interface-specific keys allowed)."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+
+    interface: str = Field(description="python-can interface: socketcan, pcan, kvaser, slcan, virtual, ...")
+    channel: str | int = Field(description="e.g. can0, PCAN_USBBUS1, /dev/ttyACM0")
+
+    def bus_config(self) -> dict[str, Any]:
+        """The keyword arguments of ``can.Bus``."""
+        return self.model_dump()
+
+
+class ModbusSection(_Strict):
+    """The controller's parameter interface: Modbus TCP (host, port) or RTU (serial_port, baudrate)."""
+
+    host: str | None = None
+    port: int = Field(default=502, ge=1, le=65535)
+    serial_port: str | None = None
+    baudrate: int = Field(default=115200, gt=0)
+    device_id: int = Field(default=1, ge=1, le=247)
+    timeout_s: float = Field(default=1.0, gt=0)
+
+    @model_validator(mode="after")
+    def _one_transport(self) -> ModbusSection:
+        if (self.host is None) == (self.serial_port is None):
+            raise ValueError("give either host (Modbus TCP) or serial_port (Modbus RTU), not both or neither")
+        return self
+
+
+class CmmSection(_Strict):
+    """The CMM: a pyserial URL, the approximate T_cmm<-base, transport and probing options."""
+
+    url: str = Field(description="pyserial URL: /dev/ttyUSB0, socket://HOST:PORT, ...")
+    alignment: list[Any] = Field(
+        description="T_cmm<-base, good to a few mm: a 4x4 matrix or [x, y, z mm, roll, pitch, yaw deg]"
+    )
+    serial: SerialCmmConfig = Field(default_factory=SerialCmmConfig)
+    probing: ProbingConfig = Field(default_factory=ProbingConfig)
+
+    @field_validator("alignment")
+    @classmethod
+    def _transform(cls, v: list[Any]) -> list[Any]:
+        try:
+            a = np.asarray(v, dtype=float)
+        except (TypeError, ValueError):
+            a = np.zeros(0)
+        if a.shape not in ((6,), (4, 4)) or not np.all(np.isfinite(a)):
+            raise ValueError(
+                f"must be [x, y, z, roll, pitch, yaw] (mm, deg) or a 4x4 matrix of numbers, got {v!r}"[:200]
+            )
+        if a.shape == (4, 4) and not np.array_equal(a[3], [0.0, 0.0, 0.0, 1.0]):
+            raise ValueError("the last row of a 4x4 alignment must be [0, 0, 0, 1]")
+        as_transform(a)
+        return a.tolist()
+
+    def alignment_matrix(self) -> np.ndarray:
+        """(4, 4) T_cmm<-base."""
+        return as_transform(np.asarray(self.alignment, dtype=float))
+
+
+class MotionSection(_Strict):
+    """Timeouts and tolerances of the controller link and of moves."""
+
+    move_timeout_s: float = Field(default=120.0, gt=0, description="one move_legs call")
+    heartbeat_timeout_s: float = Field(default=0.1, gt=0, description="controller lost after this silence")
+    ack_timeout_s: float = Field(default=0.5, gt=0, description="command acknowledgement")
+    connect_timeout_s: float = Field(default=5.0, gt=0, description="first heartbeat after opening CAN")
+    position_tolerance_mm: float = Field(default=0.01, gt=0, description="feedback vs setpoint at IN_POSITION")
+
+
+class StationConfig(_Strict):
+    """Where the devices of one calibration station are (see the module docstring for a TOML example)."""
+
+    robot: Path | None = Field(default=None, description="robot TOML file; None: the built-in paper Table 1 robot")
+    can: CanSection
+    modbus: ModbusSection
+    cmm: CmmSection
+    motion: MotionSection = Field(default_factory=MotionSection)
+    records: Path | None = Field(default=None, description="folder for run records")
+    operator: str | None = None
+
+
+def _format_errors(err: ValidationError, source: str) -> str:
+    lines = [f"{source}: {err.error_count()} problem(s)"]
+    for e in err.errors():
+        where = ".".join(str(p) for p in e["loc"]) or "<top>"
+        lines.append(f"  {where}: {e['msg'].removeprefix('Value error, ')}")
+    return "\n".join(lines)
+
+
+def station_from_dict(data: dict[str, Any], source: str = "<station>") -> StationConfig:
+    """Validate parsed station settings; StationConfigError naming every bad field."""
+    try:
+        return StationConfig.model_validate(data)
+    except ValidationError as err:
+        raise StationConfigError(_format_errors(err, source)) from None
+
+
+def load_station(path: str | Path) -> StationConfig:
+    """Read a station TOML file; relative ``robot``/``records`` paths are taken relative to the file."""
+    p = Path(path)
+    source = f"station file {p}"
+    try:
+        text = p.read_text()
+    except OSError as err:
+        raise StationConfigError(f"{source}: cannot read: {err.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise StationConfigError(f"{source}: not valid TOML: {err}") from None
+    base = p.resolve().parent
+    for key in ("robot", "records"):
+        value = data.get(key)
+        if isinstance(value, str) and value and not Path(value).is_absolute():
+            data[key] = str(base / value)
+    return station_from_dict(data, source)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise ValueError(f"TOML cannot hold {value}")
+        return repr(value)
+    if isinstance(value, str | Path):
+        return json.dumps(str(value))
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(f"no TOML form for {type(value).__name__}")
+
+
+def _toml_table(data: dict[str, Any], prefix: str) -> list[str]:
+    lines = [f"{k} = {_toml_value(v)}" for k, v in data.items() if v is not None and not isinstance(v, dict)]
+    for k, v in data.items():
+        if isinstance(v, dict):
+            name = f"{prefix}.{k}" if prefix else k
+            lines += ["", f"[{name}]", *_toml_table(v, name)]
+    return lines
+
+
+def station_to_toml(station: StationConfig) -> str:
+    """The station as TOML text (``load_station`` reads it back to an equal StationConfig)."""
+    return "\n".join(_toml_table(station.model_dump(mode="json", exclude_none=True), "")).lstrip("\n") + "\n"
+
+
+def save_station(station: StationConfig, path: str | Path) -> None:
+    """Write the station as a TOML file (paths are written as they are, absolute or relative to the cwd)."""
+    Path(path).write_text(station_to_toml(station))
+
+
+def station_from_channels(channels: dict[str, Any], robot_path: str | Path | None = None) -> StationConfig:
+    """The station of a running simulator (``SimHandle.channels()`` / the JSON line of ``hilcal sim --json``).
+
+    The robot is ``robot_path``, else the simulator's robot file, else the built-in robot; its name must be
+    the simulator's robot (StationConfigError otherwise).
+    """
+    path = robot_path if robot_path is not None else channels.get("robot_path")
+    try:
+        robot = load_robot(path)
+    except RobotFileError as err:
+        raise StationConfigError(str(err)) from None
+    if "robot" in channels and robot.name != channels["robot"]:
+        raise StationConfigError(
+            f"the simulator runs robot {channels['robot']!r} but the robot file "
+            f"{path or '<built-in>'} is {robot.name!r}"
+        )
+    try:
+        cmm = {"url": channels["cmm"]["url"], "alignment": channels["cmm_alignment"]}
+        data = {"robot": path, "can": channels["can"], "modbus": channels["modbus"], "cmm": cmm}
+    except (KeyError, TypeError) as err:
+        raise StationConfigError(f"simulator channels: missing {err}") from None
+    return station_from_dict({k: v for k, v in data.items() if v is not None}, "simulator channels")
+
+
+@dataclass(eq=False)
+class Devices:
+    """The open devices of a station; ``close()`` (or ``with``) closes all of them."""
+
+    station: StationConfig
+    robot: Robot
+    controller: ControllerCan
+    params: ControllerParams
+    cmm: SerialCmm
+    cmm_alignment: np.ndarray
+    """(4, 4) T_cmm<-base from the station file."""
+    _stack: ExitStack = field(default_factory=ExitStack, repr=False)
+
+    def close(self) -> None:
+        """Close the CMM, the parameter interface and the CAN link (idempotent); device states are left as they are."""
+        self._stack.close()
+
+    def __enter__(self) -> Devices:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def open_devices(station: StationConfig, *, check: bool = True) -> Devices:
+    """Open the controller (CAN), its parameter interface (Modbus) and the CMM of a station.
+
+    With ``check`` the controller must send a heartbeat within ``motion.connect_timeout_s`` and the Modbus
+    device must identify as a compatible controller. DeviceOpenError (naming the device) if anything fails;
+    whatever was opened before is closed again.
+    """
+    try:
+        robot = load_robot(station.robot)
+    except RobotFileError as err:
+        raise DeviceOpenError(f"robot: {err}") from None
+    motion = station.motion
+    with ExitStack() as stack:
+        try:
+            controller = ControllerCan(
+                station.can.bus_config(),
+                robot,
+                heartbeat_timeout_s=motion.heartbeat_timeout_s,
+                ack_timeout_s=motion.ack_timeout_s,
+                position_tolerance_mm=motion.position_tolerance_mm,
+            )
+            stack.callback(controller.close)
+            if check:
+                controller.wait_for_heartbeat(motion.connect_timeout_s)
+        except Exception as err:
+            raise DeviceOpenError(f"controller (CAN {station.can.bus_config()}): {err}") from err
+        mb = station.modbus
+        try:
+            params = ControllerParams(mb.host, mb.port, serial_port=mb.serial_port, baudrate=mb.baudrate,
+                                      device_id=mb.device_id, timeout_s=mb.timeout_s)
+            stack.callback(params.close)
+            if check:
+                params.read_identity()
+        except Exception as err:
+            raise DeviceOpenError(f"controller parameters (Modbus {mb.host or mb.serial_port}): {err}") from err
+        try:
+            cmm = SerialCmm(station.cmm.url, station.cmm.serial, station.cmm.probing)
+            stack.callback(cmm.close)
+        except Exception as err:
+            raise DeviceOpenError(f"CMM ({station.cmm.url}): {err}") from err
+        devices = Devices(station, robot, controller, params, cmm, station.cmm.alignment_matrix(), stack.pop_all())
+    log.info("station_devices_opened", robot=robot.name, can=station.can.bus_config().get("channel"),
+             modbus=params.endpoint, cmm=station.cmm.url)
+    return devices
