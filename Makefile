@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: venv
-	$(BIN)/hilcal demo
+	$(BIN)/hilcal run --sim --yes --out runs/demo-$$(date +%Y%m%d-%H%M%S) --records runs/records.sqlite
 
 lint: venv
 	$(BIN)/ruff check .

@@ -81,6 +81,7 @@ class ModbusFaultConfig(_Strict):
         default=False, description="True: the dropped write is executed before the connection closes"
     )
     exception_code: int | None = Field(default=None, ge=1, le=255, description="answer every request with this")
+    response_delay_s: float = Field(default=0.0, ge=0, le=10, description="wait this long before every response")
 
 
 class ControllerSimConfig(_Strict):

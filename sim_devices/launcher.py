@@ -121,7 +121,9 @@ class SimRigSettings(BaseModel):
         try:
             RigConfig.model_validate({**(self.model_extra or {}), "seed": self.seed, "errors": GeometryErrors.zero()})
         except ValidationError as err:
-            raise ValueError(_format_errors(err, "rig")) from None
+            raise ValueError("; ".join(
+                f"{'.'.join(str(p) for p in e['loc'])}: {e['msg'].removeprefix('Value error, ')}" for e in err.errors()
+            )) from None
         return self
 
     def rig_config(self, robot: Robot) -> RigConfig:
@@ -397,13 +399,13 @@ class PersistentController(SimulatedController):
             )
 
     def save_state(self, force: bool = False) -> None:
-        """Write the state file if anything changed (leg lengths while moving: throttled); force: always."""
+        """Write the state file if anything but the clock changed (legs while moving: throttled); force: always."""
         if self._store is None:
             return
         with self._lock:
             state = self.current_state()
             key = (state.controller_state, state.banks)
-            motion = (state.rig.reported_lengths_mm, state.rig.direction, state.rig.time_s)
+            motion = (state.rig.reported_lengths_mm, state.rig.direction)
             now = time.monotonic()
             if not force:
                 if key == self._saved_key and motion == self._saved_motion:
@@ -522,11 +524,11 @@ class SimHandle:
 
     def channels(self) -> dict[str, Any]:
         """Where to connect the real drivers (JSON-serialisable)."""
-        servers = self.controller_servers
+        servers, cmm = self.controller_servers, self.cmm_server
         out: dict[str, Any] = {
             "can": {"interface": "slcan", "channel": servers.slcan_path, "sleep_after_open": 0},
             "modbus": {"host": HOST, "port": servers.modbus_port, "device_id": self.config.controller.device_id},
-            "cmm": {"url": self.cmm_server.path, "socket_url": self.cmm_server.socket_url},
+            "cmm": {"url": cmm.path or cmm.socket_url, "socket_url": cmm.socket_url},
             "cmm_alignment": self.alignment.tolist(),
             "robot": self.robot.name,
             "robot_path": None if self.config.robot is None else str(self.config.robot),

@@ -252,6 +252,7 @@ class ModbusFaultInjector:
         self._always: ModbusExceptionCode | None = (
             ModbusExceptionCode(cfg.exception_code) if cfg.exception_code is not None else None
         )
+        self.response_delay_s = cfg.response_delay_s
 
     def drop_connection_at_write(self, n: int, *, execute: bool = False) -> None:
         """Close the connection when the n-th write request from now arrives (1 = the next one), once.
@@ -513,6 +514,8 @@ class ModbusTcpServer:
                 if response is None:
                     log.info("modbus_connection_dropped_by_fault_injection")
                     return
+                if self.faults.response_delay_s:
+                    time.sleep(self.faults.response_delay_s)
                 conn.sendall(response)
         except OSError:
             return

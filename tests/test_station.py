@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -138,10 +138,10 @@ def sim() -> Iterator[SimHandle]:
         yield handle
 
 
-def wait_for(predicate: object, timeout_s: float = 2.0) -> bool:
+def wait_for(predicate: Callable[[], bool], timeout_s: float = 2.0) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        if predicate():  # type: ignore[operator]
+        if predicate():
             return True
         time.sleep(0.02)
     return False

@@ -1,0 +1,117 @@
+"""`hilcal run --sim` killed with SIGKILL at seeded points (the upload included) and resumed each time.
+
+Every resume must end in a complete run with the full set of measurements and no duplicates, and the
+simulated controller's live parameter set must always be exactly the old or the new one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hilcal.robot import default_robot
+
+SIM_CONFIG = """
+[controller.modbus_faults]
+response_delay_s = 0.03
+"""
+
+
+def _journal_state(path: Path) -> tuple[int, str | None, str | None]:
+    """(measurements so far, upload outcome, run_id) read from the journal without disturbing the writer."""
+    if not path.exists():
+        return 0, None, None
+    try:
+        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=1)
+        try:
+            n = db.execute("SELECT COUNT(*) FROM measurements").fetchone()[0]
+            row = db.execute("SELECT value_json FROM steps WHERE key = 'upload'").fetchone()
+            run = db.execute("SELECT run_id FROM run").fetchone()
+        finally:
+            db.close()
+    except sqlite3.Error:
+        return 0, None, None
+    return n, None if row is None else json.loads(row[0])["outcome"], None if run is None else run[0]
+
+
+def _live_set(state_file: Path) -> np.ndarray | None:
+    if not state_file.exists():
+        return None
+    return np.array(json.loads(state_file.read_text())["banks"]["live"], dtype=float)
+
+
+def _start(out: Path, tmp: Path, run_id: str | None) -> subprocess.Popen[bytes]:
+    args = ["--resume", run_id] if run_id else ["--sim", "--sim-config", str(tmp / "sim.toml")]
+    env = {**os.environ, "HILCAL_RECORDS": str(tmp / "records.sqlite")}
+    return subprocess.Popen([sys.executable, "-m", "hilcal.cli", "run", "--yes", "--out", str(out), *args],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+
+
+@pytest.mark.timeout(900)
+def test_sigkill_at_seeded_points_then_resume(tmp_path):
+    rng = np.random.default_rng(20261121)
+    (tmp_path / "sim.toml").write_text(SIM_CONFIG)
+    out = tmp_path / "run"
+    journal = out / "journal.sqlite"
+    total = 32 + 24 + 24
+    # Kill points: after k measurements plus a random delay, spread over all three phases, and inside the upload.
+    kill_after = sorted(rng.choice(np.arange(1, total), size=18, replace=False).tolist())
+    plan = [("startup", 0, rng.uniform(0.5, 2.0))]
+    plan += [("measurements", k, rng.uniform(0.0, 0.4)) for k in kill_after if k < 56]
+    plan += [("upload", 56, rng.uniform(0.0, 0.05)), ("upload", 56, rng.uniform(0.05, 0.3))]
+    plan += [("measurements", k, rng.uniform(0.0, 0.4)) for k in kill_after if k >= 56]
+    assert len(plan) >= 21
+
+    robot = default_robot()
+    old = np.concatenate([robot.a.ravel(), robot.b.ravel(), robot.l0])
+    live_sets, counts, run_id, kills = [], [], None, 0
+    for kind, k, delay in plan:
+        proc = _start(out, tmp_path, run_id)
+        t0 = time.monotonic()
+        while proc.poll() is None:
+            n, upload, rid = _journal_state(journal)
+            run_id = run_id or rid
+            due = {"startup": time.monotonic() - t0 > delay,
+                   "measurements": n >= k,
+                   "upload": upload is not None}[kind]
+            if due and kind != "startup":
+                time.sleep(delay)
+            if due and proc.poll() is None:
+                proc.send_signal(signal.SIGKILL)
+                kills += 1
+                break
+            time.sleep(0.005)
+        proc.wait(30)
+        time.sleep(0.3)
+        n, _, rid = _journal_state(journal)
+        run_id = run_id or rid
+        counts.append(n)
+        live_sets.append(_live_set(out / "sim_state.json"))
+    assert kills >= 20, f"only {kills} kill points landed before the run finished"
+    assert run_id is not None
+
+    final = _start(out, tmp_path, run_id)
+    assert final.wait(600) == 0
+    db = sqlite3.connect(journal)
+    rows = db.execute("SELECT phase, pose_index FROM measurements ORDER BY seq").fetchall()
+    assert len(rows) == total and len(set(rows)) == total
+    assert {p for p, _ in rows} == {"measure", "verify", "verify_after"}
+    assert counts == sorted(counts), "no measurement is ever lost"
+    report = json.loads((out / "report.json").read_text())
+    assert report["status"] == "complete" and report["uploaded"] is True
+    assert report["verification"]["after"]["max_position_mm"] <= 0.05
+    uploaded = report["compensation"]["uploaded_parameters"]
+    new = np.concatenate([np.ravel(uploaded["a_mm"]), np.ravel(uploaded["b_mm"]), uploaded["l0_mm"]])
+    for live in live_sets:
+        if live is not None:
+            assert np.allclose(live, old, atol=1e-3) or np.allclose(live, new, atol=1e-3), "mixed live set"
+    assert np.allclose(_live_set(out / "sim_state.json"), new, atol=1e-3)
