@@ -13,7 +13,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-SCRIPTS = ("bench_core.py", "bench_protocols_controller.py", "bench_cmm.py", "paper_study.py", "diagnosis_study.py")
+SCRIPTS = ("bench_core.py", "bench_protocols_controller.py", "bench_cmm.py", "bench_run.py", "paper_study.py",
+           "diagnosis_study.py")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -176,12 +176,13 @@ def sim_command(
     seed: Annotated[int | None, typer.Option(help="rig seed")] = None,
 ) -> None:
     """Start every simulated device (controller on SLCAN/pty + Modbus TCP, CMM on a pty) until Ctrl-C."""
-    from sim_devices.launcher import main as sim_main
+    from sim_devices.launcher import SimConfigError, load_sim_config, run_sim_process
 
-    argv = [*(["--config", str(config)] if config else []), *(["--json"] if as_json else []),
-            *(["--state-file", str(state_file)] if state_file else []), *(["--seed", str(seed)] if seed is not None
-                                                                          else [])]
-    raise typer.Exit(sim_main(argv))
+    try:
+        sim_config = load_sim_config(config, state_file=state_file, seed=seed)
+    except SimConfigError as e:
+        _fail(str(e))
+    raise typer.Exit(run_sim_process(sim_config, as_json))
 
 
 def _params_client(station: Path):

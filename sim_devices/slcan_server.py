@@ -38,7 +38,7 @@ from hilcal.protocols.checksums import (
     CAN_PAYLOAD_BYTES,
     can_frame_checksum,
 )
-from hilcal.protocols.controller_states import Command, RefusalReason
+from hilcal.protocols.controller_states import Command, ControllerState, RefusalReason
 from sim_devices.controller import CanFaultConfig, SimulatedController
 
 log = structlog.get_logger(__name__)
@@ -155,6 +155,11 @@ class PeerStats:
 _SETPOINT_PAIRS = {"SetpointL12": 0, "SetpointL34": 1, "SetpointL56": 2}
 
 
+STATE_POLL_S = 0.002
+"""While a move is under way the server checks the state this often and sends Status at once on a change."""
+WATCH_AFTER_SETPOINT_S = 0.5
+
+
 class ControllerCanPeer:
     """The controller's CAN protocol: frames in -> model calls -> acknowledgement frames; heartbeat frames."""
 
@@ -168,6 +173,17 @@ class ControllerCanPeer:
         self._cycle = 0
         self._pending: dict[int, tuple[int, tuple[int, int]]] = {}
         self._fault_events_seen = controller.snapshot().fault_events
+        self._state_sent: ControllerState | None = None
+        self._watch_until = 0.0
+
+    def status_changed(self) -> bool:
+        """True when the controller's state differs from the one in the last status frame sent."""
+        return self.controller.snapshot().state != self._state_sent
+
+    @property
+    def watching(self) -> bool:
+        """A move is (or may be) under way: a setpoint arrived recently or the last status said MOVING."""
+        return self._state_sent == ControllerState.MOVING or time.monotonic() < self._watch_until
 
     def reset_session(self) -> None:
         """A new host session (SLCAN channel opened): forget received counters and partial setpoints."""
@@ -241,12 +257,14 @@ class ControllerCanPeer:
             return [self._ack(Command.SETPOINT, RefusalReason.SETPOINT_INCOMPLETE, counter)]
         lengths_mm = [um / UM_PER_MM for p in parts if p is not None for um in p[1]]
         reason = self.controller.set_setpoint(lengths_mm, tag=counter)
+        self._watch_until = time.monotonic() + WATCH_AFTER_SETPOINT_S
         return [self._ack(Command.SETPOINT, reason, counter)]
 
     def cycle_frames(self) -> list[Frame]:
         """One heartbeat: [FaultEvent if a fault happened,] Status, FeedbackL12, FeedbackL34, FeedbackL56."""
         with self._lock:
             snap = self.controller.snapshot()
+            self._state_sent = snap.state
             frames = []
             if snap.fault_events != self._fault_events_seen:
                 self._fault_events_seen = snap.fault_events
@@ -654,6 +672,8 @@ class SlcanServer:
         deadlines = [now + 0.1]
         if self._open:
             deadlines.append(next_heartbeat)
+            if self.peer.watching:
+                deadlines.append(now + STATE_POLL_S)
         due = self._outbox.next_due()
         if due is not None:
             deadlines.append(due)
@@ -678,6 +698,8 @@ class SlcanServer:
             next_heartbeat += self.heartbeat_period_s
             if next_heartbeat < now:
                 next_heartbeat = now + self.heartbeat_period_s
+        elif self._open and self.faults.heartbeat and self.peer.status_changed():
+            self._send(self._outbox.schedule(self.peer.cycle_frames(), now))
         elif not self._open:
             next_heartbeat = now
         self._send(self._outbox.due(now) if self._open else [])
