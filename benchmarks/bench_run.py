@@ -71,9 +71,9 @@ def main(argv: Sequence[str] | None = None) -> int:
               "before and 24 after the upload (80 poses), including simulator start-up, identification (LS and "
               "L-infinity), upload and report. Per pose = wall time / 80. Each pose is reached in leg steps of at "
               "most 50 mm plus an approach move (about 15 CAN setpoint round trips) and measured with 56 CMM touches "
-              "over the pty. The two settings take about the same time, so the simulated machine time is not what "
-              "dominates: the engine, driver and protocol path is (`python -m cProfile -m hilcal.cli run --sim "
-              "--yes --out DIR` shows where).\n\n")
+              "over the pty. The near-instant row is the engine, driver and protocol overhead; the difference to "
+              "the `make demo` row is simulated machine time (servo motion and probing, scaled). "
+              "`python -m cProfile -m hilcal.cli run --sim --yes --out DIR` shows where the time goes.\n\n")
     (ROOT / "docs" / "benchmarks_run.md").write_text(header + table + "\n")
     return 0
 

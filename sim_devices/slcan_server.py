@@ -177,7 +177,7 @@ class ControllerCanPeer:
         self._watch_until = 0.0
 
     def status_changed(self) -> bool:
-        """True when the controller's state differs from the one in the last status frame sent."""
+        """True when the controller's state differs from the last status sent (or a setpoint came since)."""
         return self.controller.snapshot().state != self._state_sent
 
     @property
@@ -258,6 +258,7 @@ class ControllerCanPeer:
         lengths_mm = [um / UM_PER_MM for p in parts if p is not None for um in p[1]]
         reason = self.controller.set_setpoint(lengths_mm, tag=counter)
         self._watch_until = time.monotonic() + WATCH_AFTER_SETPOINT_S
+        self._state_sent = None
         return [self._ack(Command.SETPOINT, reason, counter)]
 
     def cycle_frames(self) -> list[Frame]:
@@ -894,6 +895,8 @@ class CanBusServer:
         now = time.monotonic()
         due = self._outbox.next_due()
         wait = min(next_heartbeat, due if due is not None else next_heartbeat) - now
+        if self.peer.watching:
+            wait = min(wait, STATE_POLL_S)
         msg = self._bus.recv(timeout=max(0.0, min(wait, 0.05)))
         now = time.monotonic()
         if msg is not None and not msg.is_error_frame:
@@ -907,5 +910,7 @@ class CanBusServer:
             next_heartbeat += self.heartbeat_period_s
             if next_heartbeat < now:
                 next_heartbeat = now + self.heartbeat_period_s
+        elif self.faults.heartbeat and self.peer.status_changed():
+            self._send(self._outbox.schedule(self.peer.cycle_frames(), now))
         self._send(self._outbox.due(now))
         return next_heartbeat
