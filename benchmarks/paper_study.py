@@ -648,34 +648,25 @@ def grid_sections(grid: GridResults, plan: StudyPlan) -> list[str]:
              "parentheses (like the paper's Figs. 9–10).\n")
     header = ["error set", "σ (mm)", "before pos (mm)", "LS pos (mm)", "L∞ pos (mm)",
               "before ori (deg)", "LS ori (deg)", "L∞ ori (deg)"]
-    body = []
-    for e in plan.error_sets:
-        for n in plan.noises_mm:
-            sel = dict(error_set=e, pose_set=focus, noise_mm=n)
-            cells = [ERROR_SET_LABELS[e], f"{n:g}"]
-            for q in ("pos", "ori"):
-                b = grid_median(rows, f"before_{q}_max", estimator="ls", **sel)
-                cells.append(fmt(b))
-                for est in ESTIMATORS:
-                    a = grid_median(rows, f"after_{q}_max", estimator=est, **sel)
-                    cells.append(f"{fmt(a)} ({reduction_pct(b, a):.2f} %)")
-            body.append(cells)
-    s.append(md_table(header, body))
+    def reduction_table(prefix: str) -> str:
+        body = []
+        for e in plan.error_sets:
+            for n in plan.noises_mm:
+                sel = dict(error_set=e, pose_set=focus, noise_mm=n)
+                cells = [ERROR_SET_LABELS[e], f"{n:g}"]
+                for q in ("pos", "ori"):
+                    b = grid_median(rows, f"before_{prefix}{q}_max", estimator="ls", **sel)
+                    cells.append(fmt(b))
+                    for est in ESTIMATORS:
+                        a = grid_median(rows, f"after_{prefix}{q}_max", estimator=est, **sel)
+                        cells.append(f"{fmt(a)} ({reduction_pct(b, a):.2f} %)")
+                body.append(cells)
+        return md_table(header, body)
+
+    s.append(reduction_table(""))
     s.append("\nThe measured-verification version (the same evaluation poses measured by the noisy CMM; the "
              "noise is in the reference, so the floor is the noise itself):\n")
-    body = []
-    for e in plan.error_sets:
-        for n in plan.noises_mm:
-            sel = dict(error_set=e, pose_set=focus, noise_mm=n)
-            cells = [ERROR_SET_LABELS[e], f"{n:g}"]
-            for q in ("pos", "ori"):
-                b = grid_median(rows, f"before_meas_{q}_max", estimator="ls", **sel)
-                cells.append(fmt(b))
-                for est in ESTIMATORS:
-                    a = grid_median(rows, f"after_meas_{q}_max", estimator=est, **sel)
-                    cells.append(f"{fmt(a)} ({reduction_pct(b, a):.2f} %)")
-            body.append(cells)
-    s.append(md_table(header, body))
+    s.append(reduction_table("meas_"))
     s.append("\n![error reduction vs noise](img/reduction_vs_noise.png)\n")
     s.append("### 1.5 Maximum position error after calibration (mm, true evaluation poses) by pose set, LS / L∞\n")
     header = ["error set", "σ (mm)"] + [POSE_SET_LABELS[p] for p in plan.pose_sets]

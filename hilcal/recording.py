@@ -145,19 +145,11 @@ def _angle_limits(robot: Robot | None) -> list[tuple[float, float]]:
     ]
 
 
-def _validate_arrays(
-    seq: np.ndarray,
-    phase: np.ndarray,
-    time_s: np.ndarray,
-    cmd: np.ndarray,
-    legs_mm: np.ndarray,
-    meas: np.ndarray,
-    extra: Mapping[str, np.ndarray],
-    loc: _Locator,
-    robot: Robot | None,
-    min_measure_rows: int,
-) -> None:
+def _validate(rec: Recording, loc: _Locator, robot: Robot | None, min_measure_rows: int) -> None:
     """Check every value against the format rules; raise RecordingError at the first violation."""
+    seq, phase, time_s, cmd, legs_mm, meas, extra = (
+        rec.seq, rec.phase, rec.time_s, rec.cmd, rec.legs_mm, rec.meas, rec.extra
+    )
     if min_measure_rows < 0:
         raise ValueError(f"min_measure_rows must be >= 0, got {min_measure_rows}")
     n = seq.shape[0]
@@ -347,18 +339,7 @@ def recording_from_arrays(
                 f"{source}: extra column {name!r} has shape {arr.shape}, expected {(n,)}", column=name
             )
     rec = Recording(seq=seq_arr.astype(np.int64), extra=extra_arr, **arrays)
-    _validate_arrays(
-        rec.seq,
-        rec.phase,
-        rec.time_s,
-        rec.cmd,
-        rec.legs_mm,
-        rec.meas,
-        rec.extra,
-        _Locator(source, None),
-        robot,
-        min_measure_rows,
-    )
+    _validate(rec, _Locator(source, None), robot, min_measure_rows)
     return rec
 
 
@@ -474,18 +455,7 @@ def read_recording(path: str | Path, robot: Robot | None = None, min_measure_row
         meas=meas,
         extra=extra,
     )
-    _validate_arrays(
-        rec.seq,
-        rec.phase,
-        rec.time_s,
-        rec.cmd,
-        rec.legs_mm,
-        rec.meas,
-        rec.extra,
-        loc,
-        robot,
-        min_measure_rows,
-    )
+    _validate(rec, loc, robot, min_measure_rows)
     return rec
 
 
