@@ -302,6 +302,8 @@ def diagnose(
     out.print(f"[bold]effect:[/] {diag.effect}")
     out.print(diag.explanation, highlight=False)
     out.print(_accuracy_table("verify poses", [("geometry only", diag.before), ("with effect", diag.after)]))
+    axes = ", ".join(f"{k} {v:.4g}" for k, v in diag.residual_rms_by_axis().items())
+    out.print(f"geometry-only residual RMS per pose axis: {axes}", highlight=False)
     for finding in diag.findings[:5]:
         out.print(f"  - {finding.text}", highlight=False)
     if page is not None:

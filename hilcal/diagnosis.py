@@ -89,6 +89,13 @@ class Diagnosis:
     leg_residuals_mm: np.ndarray = field(repr=False)
     context: EffectContext = field(repr=False)
 
+    def residual_rms_by_axis(self) -> dict[str, float]:
+        """RMS of the geometry-only fit's pose residuals per axis: x, y, z in mm; roll, pitch, yaw in deg."""
+        r = self.geometry_fit.residuals
+        rms = np.sqrt(np.mean(r**2, axis=0))
+        rms[3:] = np.degrees(rms[3:] / self.geometry_fit.length_mm)
+        return dict(zip(("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"), map(float, rms), strict=True))
+
     def to_json(self) -> dict[str, Any]:
         return {
             "effect": self.effect,
@@ -105,6 +112,9 @@ class Diagnosis:
                 for t in self.tests
             ],
             "findings": [f.text for f in self.findings],
+            "residual_rms_by_axis": self.residual_rms_by_axis(),
+            "leg_residual_rms_mm": {f"leg{i + 1}": float(v) for i, v in
+                                    enumerate(np.sqrt(np.mean(self.leg_residuals_mm**2, axis=0)))},
         }
 
 

@@ -136,6 +136,7 @@ def write_report(diag: Diagnosis, rec: Recording, out_dir: Path, alpha: float = 
     def acc(summary: object) -> str:
         return "n/a" if summary is None else ", ".join(f"{k} {v:.4f}" for k, v in summary.brief().items())
 
+    axes = ", ".join(f"{k} {v:.4g}" for k, v in diag.residual_rms_by_axis().items())
     title = CANDIDATES_BY_NAME[diag.effect].title if diag.effect in CANDIDATES_BY_NAME else diag.effect
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>hilcal diagnosis: {html.escape(title)}</title>
 <style>body{{font-family:sans-serif;max-width:1200px;margin:2em auto}}img{{max-width:100%;display:block;margin:1em 0}}
@@ -147,7 +148,8 @@ table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:3px 8px;te
 <h2>Fitted parameters</h2><table><tr><th>parameter</th><th>value</th><th>std error (cluster-robust)</th></tr>
 {params}</table><h2>Tests</h2><table><tr><th>candidate</th><th>params</th><th>F</th><th>Holm p</th>
 <th>CV RMS µm</th><th>supported</th></tr>
-{rows}</table><h2>Where the mismatch lives</h2><ul>{findings}</ul>{images}</body></html>"""
+{rows}</table><h2>Where the mismatch lives</h2><p>geometry-only residual RMS per pose axis: {html.escape(axes)}</p>
+<ul>{findings}</ul>{images}</body></html>"""
     path = out_dir / "index.html"
     path.write_text(page)
     return path

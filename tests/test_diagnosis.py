@@ -76,6 +76,8 @@ def test_cli_diagnose_json_and_report(robot, plan, tmp_path):
     assert set(data["before"]) == keys and set(data["after"]) == keys
     assert data["after"]["rms_position_mm"] < data["before"]["rms_position_mm"]
     assert "leg compliance" in data["explanation"]
+    assert set(data["residual_rms_by_axis"]) == {"x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"}
+    assert all(v > 0 for v in data["leg_residual_rms_mm"].values())
     for name in ("index.html", "legs.png", "time.png", "tests.png", "verify.png", "diagnosis.json"):
         assert (tmp_path / "rep" / name).stat().st_size > 0
     assert "data:image/png;base64," in (tmp_path / "rep" / "index.html").read_text()
