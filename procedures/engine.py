@@ -60,7 +60,7 @@ class Engine:
         try:
             while True:
                 msg = procedure.send(result)
-                result = self._dispatch(msg)
+                result = self._dispatch_pausable(msg)
         except StopIteration as done:
             return done.value
         except KeyboardInterrupt:
@@ -72,6 +72,29 @@ class Engine:
         except Exception as e:
             self._stop_motion(f"{type(e).__name__}: {e}")
             raise RunInterrupted(f"{type(e).__name__}: {e}") from e
+
+    def _dispatch_pausable(self, msg: object) -> Any:
+        """Ctrl-C pauses: motion stops; an operator may go on (the message is executed again) or abort.
+
+        Every message is safe to repeat: a move goes to the same target, a journaled measurement is not
+        taken twice, and an upload is settled by reading the live set back. Unattended runs abort.
+        """
+        while True:
+            try:
+                return self._dispatch(msg)
+            except KeyboardInterrupt:
+                self._stop_motion("paused by the operator (Ctrl-C)")
+                if self.confirm is None or not self._ask_continue():
+                    raise RunInterrupted("aborted by the operator") from None
+                self.journal.event("resumed_after_pause", message=type(msg).__name__)
+                if isinstance(msg, m.MoveLegs | m.Measure | m.Settle):
+                    self._on_enable(m.Enable())
+
+    def _ask_continue(self) -> bool:
+        try:
+            return bool(self.confirm("Paused: motion stopped. Continue the run?"))
+        except (KeyboardInterrupt, EOFError):
+            return False
 
     def _stop_motion(self, reason: str) -> None:
         self.journal.event("interrupted", reason=reason)
