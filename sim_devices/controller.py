@@ -343,6 +343,18 @@ class SimulatedController:
             self._banks.saved = v.copy()
             self._banks.backup = None
 
+    def restore_banks(self, live: Sequence[float], saved: Sequence[float], backup: Sequence[float] | None,
+                      commit_counter: int, save_counter: int) -> None:
+        """Put back parameter banks kept outside the process (non-volatile state across a restart)."""
+        with self._lock:
+            b = self._banks
+            b.live = np.asarray(live, dtype=np.float32)
+            b.saved = np.asarray(saved, dtype=np.float32)
+            b.backup = None if backup is None else np.asarray(backup, dtype=np.float32)
+            b.staging = words_from_floats(b.live.tolist())
+            b.commit_counter = commit_counter
+            b.save_counter = save_counter
+
     def live_parameters(self) -> np.ndarray:
         with self._lock:
             return self._banks.live.astype(float)
@@ -501,18 +513,12 @@ class ControllerServers:
         self.close()
 
 
-def start_controller_servers(
-    robot: Robot, rig: SimulatedRig, config: ControllerSimConfig | None = None
-) -> ControllerServers:
-    """Start a simulated controller on SLCAN (pty or TCP), Modbus TCP (127.0.0.1) and optionally Modbus RTU (pty).
-
-    Fault injection starts as the config says; ``close()`` stops every server.
-    """
+def serve_controller(controller: SimulatedController) -> ControllerServers:
+    """Serve a controller model on SLCAN (pty or TCP), Modbus TCP (127.0.0.1) and optionally Modbus RTU (pty)."""
     from sim_devices.modbus_server import ModbusRtuServer, ModbusTcpServer
     from sim_devices.slcan_server import ControllerCanPeer, SlcanServer
 
-    cfg = config or ControllerSimConfig()
-    controller = SimulatedController(robot, rig, cfg)
+    cfg = controller.config
     slcan = SlcanServer(ControllerCanPeer(controller), transport=cfg.slcan_transport).start()
     servers = ControllerServers(controller, slcan, ModbusTcpServer(controller, port=cfg.modbus_port))
     try:
@@ -525,3 +531,13 @@ def start_controller_servers(
     log.info("controller_servers_started", slcan=slcan.channel, modbus_port=servers.modbus_port,
              modbus_rtu=servers.modbus_rtu_path)
     return servers
+
+
+def start_controller_servers(
+    robot: Robot, rig: SimulatedRig, config: ControllerSimConfig | None = None
+) -> ControllerServers:
+    """Start a simulated controller and serve it (see `serve_controller`); ``close()`` stops every server.
+
+    Fault injection starts as the config says.
+    """
+    return serve_controller(SimulatedController(robot, rig, config or ControllerSimConfig()))

@@ -63,7 +63,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from scipy.spatial.transform import Rotation
 
 from hilcal.protocols.controller_states import Command, ControllerState, FaultCode, RefusalReason
-from hilcal.protocols.registers import ParamCommand, ParamStatus, words_from_floats
+from hilcal.protocols.registers import ParamCommand, ParamStatus
 from hilcal.robot import Robot, RobotFileError, load_robot
 from sim_devices.cmm_server import CmmServerConfig, CmmServerHandle, start_cmm_server
 from sim_devices.config import BUILTIN_ERROR_SETS, GeometryErrors, RigConfig, load_errors
@@ -72,10 +72,9 @@ from sim_devices.controller import (
     ControllerSimConfig,
     ControllerSnapshot,
     SimulatedController,
+    serve_controller,
 )
-from sim_devices.modbus_server import ModbusRtuServer, ModbusTcpServer
 from sim_devices.rig import SimulatedRig
-from sim_devices.slcan_server import ControllerCanPeer, SlcanServer
 
 log = structlog.get_logger(__name__)
 
@@ -355,16 +354,7 @@ class PersistentController(SimulatedController):
         self._saved_motion: tuple[Any, ...] | None = None
         self._saved_at = 0.0
         if banks is not None:
-            self._restore_banks(banks)
-
-    def _restore_banks(self, banks: BankState) -> None:
-        b = self._banks
-        b.live = np.asarray(banks.live, dtype=np.float32)
-        b.saved = np.asarray(banks.saved, dtype=np.float32)
-        b.backup = None if banks.backup is None else np.asarray(banks.backup, dtype=np.float32)
-        b.staging = words_from_floats(b.live.tolist())
-        b.commit_counter = banks.commit_counter
-        b.save_counter = banks.save_counter
+            self.restore_banks(banks.live, banks.saved, banks.backup, banks.commit_counter, banks.save_counter)
 
     def _tick(self) -> None:
         """Advance the rig clock to the simulated time now (whole CLOCK_STEP_S steps)."""
@@ -563,21 +553,6 @@ class SimHandle:
         self.close()
 
 
-def _start_controller(controller: SimulatedController) -> ControllerServers:
-    """SLCAN, Modbus TCP and (optionally) RTU servers for a controller (as ``start_controller_servers``)."""
-    cfg = controller.config
-    slcan = SlcanServer(ControllerCanPeer(controller), transport=cfg.slcan_transport).start()
-    servers = ControllerServers(controller, slcan, ModbusTcpServer(controller, host=HOST, port=cfg.modbus_port))
-    try:
-        servers.modbus.start()
-        if cfg.modbus_rtu:
-            servers.modbus_rtu = ModbusRtuServer(controller, faults=servers.modbus.faults).start()
-    except BaseException:
-        servers.close()
-        raise
-    return servers
-
-
 def start_sim(config: SimConfig | None = None, *, lock_timeout_s: float = DEFAULT_LOCK_TIMEOUT_S) -> SimHandle:
     """Start the simulated controller and CMM in this process; ``close()`` (or ``with``) stops them.
 
@@ -595,7 +570,7 @@ def start_sim(config: SimConfig | None = None, *, lock_timeout_s: float = DEFAUL
             _restore_rig(rig, saved.rig)
         controller = PersistentController(robot, rig, cfg.controller, store, saved.banks if saved else None)
         controller.save_state(force=True)
-        servers = _start_controller(controller)
+        servers = serve_controller(controller)
         cmm = start_cmm_server(robot, cast(SimulatedRig, LockedRigView(rig, controller)),
                                cfg.cmm.server_config(cfg.rig.seed))
     except BaseException:
