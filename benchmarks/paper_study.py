@@ -607,31 +607,27 @@ def grid_sections(grid: GridResults, plan: StudyPlan) -> list[str]:
     s.append("\n![identification error vs pose set](img/ident_error_vs_pose_set.png)\n")
     s.append("### 1.2 Identification error RMS (mm), LS / L∞\n")
     header = ["error set", "pose set"] + [f"σ = {n:g} mm" for n in plan.noises_mm]
-    body = []
-    for e in plan.error_sets:
-        for p in plan.pose_sets:
-            cells = []
-            for n in plan.noises_mm:
-                ls = grid_median(rows, "ident_rms", error_set=e, pose_set=p, noise_mm=n, estimator="ls")
-                li = grid_median(rows, "ident_rms", error_set=e, pose_set=p, noise_mm=n, estimator="linf")
-                cells.append(f"{fmt(ls)} / {fmt(li)}")
-            body.append([ERROR_SET_LABELS[e], POSE_SET_LABELS[p], *cells])
-    s.append(md_table(header, body))
+
+    def ls_linf_table(key: str) -> str:
+        body = []
+        for e in plan.error_sets:
+            for p in plan.pose_sets:
+                cells = []
+                for n in plan.noises_mm:
+                    sel = dict(error_set=e, pose_set=p, noise_mm=n)
+                    ls = grid_median(rows, key, estimator="ls", **sel)
+                    li = grid_median(rows, key, estimator="linf", **sel)
+                    cells.append(f"{fmt(ls)} / {fmt(li)}")
+                body.append([ERROR_SET_LABELS[e], POSE_SET_LABELS[p], *cells])
+        return md_table(header, body)
+
+    s.append(ls_linf_table("ident_rms"))
     s.append(
         "\nThe same with the 12 per-leg *leg-axis modes* (a joint sliding along its leg while dl0 compensates) "
         "projected out of the error vector, LS / L∞ (mm) — these modes are the weakest directions of the "
         "identification Jacobian (see `hilcal identifiability`) and dominate the full RMS:\n"
     )
-    body = []
-    for e in plan.error_sets:
-        for p in plan.pose_sets:
-            cells = []
-            for n in plan.noises_mm:
-                ls = grid_median(rows, "ident_rms_rest", error_set=e, pose_set=p, noise_mm=n, estimator="ls")
-                li = grid_median(rows, "ident_rms_rest", error_set=e, pose_set=p, noise_mm=n, estimator="linf")
-                cells.append(f"{fmt(ls)} / {fmt(li)}")
-            body.append([ERROR_SET_LABELS[e], POSE_SET_LABELS[p], *cells])
-    s.append(md_table(header, body))
+    s.append(ls_linf_table("ident_rms_rest"))
     s.append("\n### 1.3 Identification error reduction (%, like the paper's Figs. 6–8), LS / L∞\n")
     body = []
     for e in plan.error_sets:

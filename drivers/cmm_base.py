@@ -299,6 +299,18 @@ class CmmInterface(abc.ABC):
             superseded=first,
         )
 
+    def _reprobe(self, indices: list[int], targets: np.ndarray, normals: np.ndarray, records: list,
+                 good: list[tuple[int, int]], budget: int) -> int:
+        """Touch the pattern points `indices` again while the re-probe budget lasts; returns what is left."""
+        for k in indices:
+            if budget == 0:
+                break
+            budget -= 1
+            idx = self._touch(targets[k], normals[k], records)
+            if idx is not None:
+                good.append((k, idx))
+        return budget
+
     def _measure_sphere_once(self, centre: np.ndarray, radius_mm: float, up: np.ndarray) -> SphereMeasurement:
         """One pass of the probe pattern around ``centre`` with miss and outlier handling."""
         cfg = self.probing
@@ -313,14 +325,7 @@ class CmmInterface(abc.ABC):
                 missed.append(k)
             else:
                 good.append((k, idx))
-        budget = cfg.max_reprobes
-        for k in missed:
-            if budget == 0:
-                break
-            budget -= 1
-            idx = self._touch(targets[k], normals[k], records)
-            if idx is not None:
-                good.append((k, idx))
+        budget = self._reprobe(missed, targets, normals, records, good, cfg.max_reprobes)
         threshold = cfg.outlier_threshold_mm
         while True:
             if len(good) < cfg.min_points:
@@ -342,13 +347,7 @@ class CmmInterface(abc.ABC):
             good = [good[j] for j in np.flatnonzero(robust.inliers)]
             if budget == 0:
                 break
-            for k in retry:
-                if budget == 0:
-                    break
-                budget -= 1
-                idx = self._touch(targets[k], normals[k], records)
-                if idx is not None:
-                    good.append((k, idx))
+            budget = self._reprobe(retry, targets, normals, records, good, budget)
         used = np.array([records[i].point_mm for _, i in good])
         if len(used) < cfg.min_points:
             raise SphereMeasurementError(
