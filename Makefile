@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: venv demo test bench lint clean
+.PHONY: venv demo test bench screenshot lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -25,6 +25,9 @@ test: lint
 
 bench: venv
 	MPLBACKEND=Agg $(BIN)/python benchmarks/run_all.py
+
+screenshot: venv
+	$(BIN)/python benchmarks/bench_panel.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

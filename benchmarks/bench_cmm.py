@@ -22,7 +22,8 @@ from scipy.spatial.transform import Rotation
 
 from drivers.cmm_serial import SerialCmm
 from hilcal.robot import default_robot
-from sim_devices.cmm_server import CmmServerConfig, start_cmm_server
+from sim_devices.cmm_config import CmmServerConfig
+from sim_devices.cmm_server import start_cmm_server
 from sim_devices.config import RigConfig, load_errors
 from sim_devices.rig import SimulatedRig
 

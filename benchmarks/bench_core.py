@@ -29,7 +29,7 @@ from hilcal.design import factorial_exchange, random_poses, verification_poses
 from hilcal.identification import IdentificationResult, identify
 from hilcal.kinematics import Geometry, forward_kinematics, inverse_kinematics
 from hilcal.robot import Robot, default_robot, rotation_matrix
-from procedures.simulated_recording import simulate_recording
+from procedures.cli.simulated_recording import simulate_recording
 from sim_devices.config import RigConfig, load_errors
 
 ROOT = Path(__file__).resolve().parents[1]

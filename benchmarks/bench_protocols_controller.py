@@ -25,10 +25,12 @@ from _docs import write_doc
 from drivers.controller_can import ControllerCan
 from drivers.controller_modbus import ControllerParams
 from hilcal.robot import Robot, default_robot
+from sim_devices.can_bus_server import CanBusServer
+from sim_devices.can_peer import ControllerCanPeer
 from sim_devices.config import RigConfig, load_errors
-from sim_devices.controller import ControllerSimConfig, SimulatedController, start_controller_servers
+from sim_devices.controller import ControllerSimConfig, SimulatedController
+from sim_devices.controller_servers import start_controller_servers
 from sim_devices.rig import SimulatedRig
-from sim_devices.slcan_server import CanBusServer, ControllerCanPeer
 
 TIME_SCALE = 1e6
 

@@ -1,4 +1,5 @@
-"""Run every benchmark (``make bench``): core, protocols, CMM, paper study, diagnosis study; ``--quick`` passes through.
+"""Run every benchmark (``make bench``): core, protocols, CMM, runs, machine time, panel, paper study,
+diagnosis study; ``--quick`` passes through.
 
 Each script runs in its own interpreter so one cannot leak state (plot backends, logging) into the other.
 """
@@ -13,8 +14,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-SCRIPTS = ("bench_core.py", "bench_protocols_controller.py", "bench_cmm.py", "bench_run.py", "paper_study.py",
-           "diagnosis_study.py")
+SCRIPTS = ("bench_core.py", "bench_protocols_controller.py", "bench_cmm.py", "bench_run.py", "bench_machine_time.py",
+           "bench_panel.py",
+           "paper_study.py", "diagnosis_study.py")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -344,6 +344,12 @@ class ControllerCan(ControllerInterface):
     # ------------------------------------------------------------------ liveness and state
 
     @property
+    def heartbeat_age_s(self) -> float | None:
+        """Seconds since the last Status frame (None: none received yet)."""
+        last = self._last_status_s
+        return None if last is None else time.monotonic() - last
+
+    @property
     def controller_alive(self) -> bool:
         """True while Status frames arrive within ``heartbeat_timeout_s``."""
         last = self._last_status_s

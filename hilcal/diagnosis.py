@@ -1,412 +1,358 @@
-"""Missing-physics discovery: calibrate the geometry, find structure it leaves, name the effect, refit.
+"""Missing-physics discovery: calibrate the geometry, then add, one at a time, what the residuals demand.
 
-The decision rule (documented in docs/diagnosis.md):
+The rule (docs/diagnosis.md):
 1. Fit the 42 geometric parameters by least squares on the `measure` rows (forward pose residuals).
-2. For each applicable candidate in `hilcal.physics`, the added-variable F statistic of its parameter
-   group after projecting out what the geometric Jacobian absorbs. A generic smooth basis in stroke and
-   time (the omnibus test) looks for structure no candidate describes.
-3. Residuals are whitened per pose with the pooled within-pose covariance (a CMM measures the six pose
-   components with unequal, correlated noise). Each test needs both the classical F p-value and a wild
-   cluster bootstrap p-value (Rademacher signs per pose, CR2 leverage-corrected residuals) to be small:
-   the F test is exact for textbook noise, the bootstrap holds up under heteroscedastic and heavy-tailed
-   noise, and requiring both keeps either one's failure from raising false alarms. Holm's correction
-   over all tests bounds the family-wise false-alarm rate by alpha.
-4. A significant candidate must also lower the leave-one-pose-out cross-validated residual (held-out
-   evidence). Of those, the one with the lowest CV residual is named; another whose fitted signature is
-   nearly the same (cosine > 0.9) is reported as indistinguishable on this data.
-5. Nothing significant -> "none"; only the omnibus or candidates without held-out gain -> "unexplained".
+2. Forward selection over the library physics (`hilcal.physics`) and the generic per-leg shapes
+   (`hilcal.generic_terms`): at each step every remaining group is tested against the current model
+   (`hilcal.selection`: added-variable F with min-P adjusted wild-bootstrap and Gaussian p-values, held-out
+   PRESS, physical plausibility); the eligible group with the largest held-out gain is added (named
+   physics wins when it explains nearly as much), the model is refitted, and the search goes on until
+   nothing passes.
+3. The residual is compared with an absolute noise yardstick (`hilcal.noise`): "within noise" is only said
+   with a noise level in mm and its source; a residual far above the noise that nothing explains is
+   `unexplained`, never `none`.
+4. The final model is refitted with every library parameter held inside its physical range; the verify rows
+   (never used for choosing) show what each step buys on held-out poses.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
+import dataclasses
 
 import numpy as np
 import structlog
-from scipy.stats import f as f_dist
+from scipy.optimize import least_squares
 
-from hilcal.error_models import implicit_residuals
+from hilcal import diagnosis_text as explain
+from hilcal.diagnosis_result import CandidateResult, Diagnosis, Step
+from hilcal.diagnosis_shapes import shapes_for
+from hilcal.diagnosis_support import locate, noise_comparison, session_shift
+from hilcal.effect_context import EffectContext
+from hilcal.error_models import implicit_residuals, pose_difference
+from hilcal.generic_terms import generic_groups
 from hilcal.identification import IdentificationResult, identify, residual_function
 from hilcal.kinematics import forward_kinematics
 from hilcal.metrics import AccuracySummary
-from hilcal.physics import CANDIDATES, CANDIDATES_BY_NAME, Candidate, EffectContext
+from hilcal.noise import find_repeats, noise_yardstick
+from hilcal.physics import library_groups
 from hilcal.recording import Recording
+from hilcal.regression import cluster_robust_covariance, pooled_whitener, whiten
 from hilcal.robot import Robot
+from hilcal.selection import GroupTest, ModelState, assess, choose, similar
+from hilcal.term_groups import GENERIC, LIBRARY, TermGroup
 
 log = structlog.get_logger(__name__)
 
 N_GEO = 42
-OMNIBUS = "omnibus"
+DL0_COLUMNS = [7 * i + 6 for i in range(6)]
+MAX_STEPS = 8
+DEFAULT_ALPHA = 0.02
+"""Family-wise false-alarm rate of a diagnosis on a recording without missing physics (library and generic
+families share it); step k of the search uses alpha / k."""
 SIMILAR_SIGNATURE = 0.9
+ALIAS_GAIN = 0.9
+"""Another setting of the same leg and variable (a period, a knot count) with 90 % of the chosen one's held-out
+gain makes the shape's scale ambiguous."""
 
 
-@dataclass(frozen=True)
-class EffectTest:
-    """The evidence for one candidate (or the omnibus structure test)."""
+@dataclasses.dataclass
+class _Problem:
+    """The fixed inputs of one diagnosis: robot, rows, contexts and the cluster structure for held-out residuals."""
 
-    name: str
-    title: str
-    n_params: int
-    applicable: bool
-    reason: str | None = None
-    f_statistic: float = float("nan")
-    p_value: float = float("nan")
-    p_f_test: float = float("nan")
-    p_holm: float = float("nan")
-    cv_rms_mm: float = float("nan")
-    cv_rms_whitened: float = float("nan")
-    significant: bool = False
-    supported: bool = False
-
-
-@dataclass(frozen=True)
-class Finding:
-    """One located structure in the geometric fit's residuals."""
-
-    leg: int | None
-    driver: str
-    correlation: float
-    text: str
-
-
-@dataclass(frozen=True)
-class Diagnosis:
-    effect: str
-    explanation: str
-    parameters: dict[str, float]
-    std_errors: dict[str, float]
-    before: AccuracySummary | None
-    after: AccuracySummary | None
-    tests: tuple[EffectTest, ...]
-    ambiguous_with: tuple[str, ...]
-    cv_rms_geometry_mm: float
-    cv_rms_effect_mm: float | None
-    findings: tuple[Finding, ...]
-    geometry_fit: IdentificationResult
-    effect_fit: IdentificationResult | None
-    leg_residuals_mm: np.ndarray = field(repr=False)
-    context: EffectContext = field(repr=False)
-
-    def residual_rms_by_axis(self) -> dict[str, float]:
-        """RMS of the geometry-only fit's pose residuals per axis: x, y, z in mm; roll, pitch, yaw in deg."""
-        r = self.geometry_fit.residuals
-        rms = np.sqrt(np.mean(r**2, axis=0))
-        rms[3:] = np.degrees(rms[3:] / self.geometry_fit.length_mm)
-        return dict(zip(("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"), map(float, rms), strict=True))
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "effect": self.effect,
-            "explanation": self.explanation,
-            "parameters": self.parameters,
-            "std_errors": self.std_errors,
-            "before": self.before.brief() if self.before else None,
-            "after": self.after.brief() if self.after else None,
-            "ambiguous_with": list(self.ambiguous_with),
-            "cv_rms_geometry_mm": self.cv_rms_geometry_mm,
-            "cv_rms_effect_mm": self.cv_rms_effect_mm,
-            "tests": [
-                {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in t.__dict__.items()}
-                for t in self.tests
-            ],
-            "findings": [f.text for f in self.findings],
-            "residual_rms_by_axis": self.residual_rms_by_axis(),
-            "leg_residual_rms_mm": {f"leg{i + 1}": float(v) for i, v in
-                                    enumerate(np.sqrt(np.mean(self.leg_residuals_mm**2, axis=0)))},
-        }
-
-
-def _orth(A: np.ndarray, rel_tol: float = 1e-9) -> np.ndarray:
-    """Orthonormal basis of the column space of A (columns scaled first, tiny singular values dropped)."""
-    if A.shape[1] == 0:
-        return A
-    norms = np.linalg.norm(A, axis=0)
-    A = A[:, norms > 0] / norms[norms > 0]
-    U, s, _ = np.linalg.svd(A, full_matrices=False)
-    return U[:, s > s[0] * rel_tol] if s.size and s[0] > 0 else A[:, :0]
-
-
-def _omnibus_regressors(ctx: EffectContext) -> np.ndarray:
-    """A generic smooth basis per leg (stroke^2, stroke^3, time, time^2, stroke x time) for unnamed structure."""
-    s = ctx.stroke_mm - ctx.stroke_mm.mean(axis=0)
-    s = s / (np.abs(s).max(axis=0) + 1e-12)
-    t = ctx.time_s - ctx.time_s.mean()
-    t = (t / (np.abs(t).max() + 1e-12))[:, None] * np.ones_like(s)
-    basis = [s**2, s**3, t, t**2, s * t]
-    out = np.zeros((*s.shape, 6 * len(basis)))
-    for j, b in enumerate(basis):
-        for i in range(6):
-            out[:, i, 6 * j + i] = b[:, i]
-    return out
-
-
-def _loo_cv_rms(r0: np.ndarray, A: np.ndarray, n_poses: int, unwhiten: np.ndarray) -> tuple[float, float]:
-    """Leave-one-pose-out residual RMS of the linearized model r0 + A d (exact group-deletion formula).
-
-    Returns (whitened RMS, the decision metric; RMS in mm with rotations as mm at the platform radius).
-    """
-    U = _orth(A)
-    resid = (r0 - U @ (U.T @ r0)).reshape(n_poses, 6)
-    Upose = U.reshape(n_poses, 6, -1)
-    total_w = total_mm = 0.0
-    for c in range(n_poses):
-        H_cc = Upose[c] @ Upose[c].T
-        e = np.linalg.lstsq(np.eye(6) - H_cc, resid[c], rcond=1e-10)[0]
-        e_mm = unwhiten @ e
-        total_w += float(e @ e)
-        total_mm += float(e_mm @ e_mm)
-    return float(np.sqrt(total_w / r0.size)), float(np.sqrt(total_mm / r0.size))
-
-
-def _whitener(r: np.ndarray, J: np.ndarray, n_poses: int) -> np.ndarray:
-    """Inverse square root of the pooled within-pose residual covariance (6 x 6), leverage-corrected.
-
-    A CMM measures the six pose components with unequal and correlated noise (it depends on the sphere
-    layout); whitening makes the F statistics and the bootstrap compare like with like.
-    """
-    adjusted = _leverage_adjusted(r, _orth(J), n_poses)
-    cov = adjusted.T @ adjusted / n_poses
-    w, V = np.linalg.eigh(cov)
-    return V @ np.diag(1.0 / np.sqrt(np.clip(w, w.max() * 1e-12, None))) @ V.T
-
-
-def _whiten(A: np.ndarray, W: np.ndarray, n_poses: int) -> np.ndarray:
-    """Apply the per-pose whitener to stacked residuals [6N] or Jacobian columns [6N, k]."""
-    shaped = A.reshape(n_poses, 6, -1)
-    return np.einsum("ij,cjk->cik", W, shaped).reshape(A.shape)
-
-
-def _leverage_adjusted(r: np.ndarray, Q: np.ndarray, n_poses: int) -> np.ndarray:
-    """Per-pose residuals scaled by (I - H_cc)^-1/2 (CR2), undoing the shrinkage of fitted residuals."""
-    rc = r.reshape(n_poses, 6)
-    Qc = Q.reshape(n_poses, 6, -1)
-    out = np.empty_like(rc)
-    for c in range(n_poses):
-        w, V = np.linalg.eigh(np.eye(6) - Qc[c] @ Qc[c].T)
-        out[c] = V @ ((V.T @ rc[c]) / np.sqrt(np.clip(w, 1e-6, None)))
-    return out
-
-
-def _holm(p: np.ndarray) -> np.ndarray:
-    order = np.argsort(p)
-    adjusted = np.empty_like(p)
-    running = 0.0
-    for rank, k in enumerate(order):
-        running = max(running, min(1.0, (len(p) - rank) * p[k]))
-        adjusted[k] = running
-    return adjusted
-
-
-def _cluster_robust_se(J: np.ndarray, r: np.ndarray, n_poses: int) -> np.ndarray:
-    """Standard errors that trust neither equal noise across poses nor independence within a pose."""
-    bread = np.linalg.pinv(J.T @ J)
-    Jc = J.reshape(n_poses, 6, -1)
-    rc = r.reshape(n_poses, 6)
-    scores = np.einsum("cij,ci->cj", Jc, rc)
-    meat = scores.T @ scores * n_poses / max(n_poses - 1, 1)
-    return np.sqrt(np.diag(bread @ meat @ bread))
-
-
-def _locate(rec: Recording, ctx: EffectContext, leg_res: np.ndarray) -> tuple[Finding, ...]:
-    """Correlate each leg's residual with the drivers of the candidate physics and with time."""
-    drivers = {
-        "axial load": ctx.force_kn,
-        "stroke": ctx.stroke_mm,
-        "direction of last motion": ctx.direction,
-        "time": np.broadcast_to(ctx.time_s[:, None], leg_res.shape),
-    }
-    if ctx.temp_c is not None and np.ptp(ctx.temp_c) > 0:
-        drivers["temperature"] = np.broadcast_to(ctx.temp_c[:, None], leg_res.shape)
-    for axis, name in enumerate(("x", "y", "z")):
-        drivers[f"platform {name}"] = np.broadcast_to(rec.meas[:, axis][:, None], leg_res.shape)
-    findings = []
-    n = len(leg_res)
-    for name, values in drivers.items():
-        for i in range(6):
-            v = values[:, i]
-            if np.ptp(v) == 0:
-                continue
-            rho = float(np.corrcoef(v, leg_res[:, i])[0, 1])
-            if abs(rho) * np.sqrt(n - 2) / np.sqrt(max(1 - rho**2, 1e-12)) > 3.5:
-                findings.append(Finding(i + 1, name, rho, f"leg {i + 1} residual follows {name} (r = {rho:+.2f})"))
-    findings.sort(key=lambda f: -abs(f.correlation))
-    return tuple(findings[:8])
-
-
-def _predict(robot: Robot, fit: IdentificationResult, legs: np.ndarray, guess: np.ndarray,
-             phi: np.ndarray | None) -> np.ndarray:
-    lengths = legs if phi is None else legs + phi @ fit.x[N_GEO:]
-    return forward_kinematics(fit.geometry(robot), lengths, guess)
-
-
-def _explain(cand: Candidate, fit: IdentificationResult, se: np.ndarray, test: EffectTest, cv0: float,
-             ambiguous: tuple[str, ...], untestable: dict[str, str]) -> str:
-    values = ", ".join(f"{n} = {v:+.3g} ± {s:.2g}" for n, v, s in zip(fit.names[N_GEO:], fit.x[N_GEO:], se,
-                                                                       strict=True))
-    text = (f"Missing physics: {cand.title}. In words: {cand.sentence}. Fitted with the geometry: {values}. "
-            f"Evidence: Holm-corrected p = {test.p_holm:.3g} (F test and wild bootstrap); leave-one-pose-out residual "
-            f"{cv0 * 1000:.1f} -> {test.cv_rms_mm * 1000:.1f} um.")
-    if ambiguous:
-        names = ", ".join(CANDIDATES_BY_NAME[a].title for a in ambiguous)
-        text += f" On this data it cannot be told apart from: {names} (nearly the same signature)."
-    if cand.name == "sensor_scale" and "thermal_expansion" in untestable:
-        text += (" Thermal growth of the legs would look the same here, and it could not be tested: "
-                 f"{untestable['thermal_expansion']}.")
-    return text
-
-
-@dataclass(frozen=True)
-class _NullModel:
-    """The geometry-only fit in whitened form: what every candidate is tested against."""
-
-    fit: IdentificationResult
-    residuals: np.ndarray
-    jacobian: np.ndarray
-    basis: np.ndarray
-    whitener: np.ndarray
-    n_poses: int
-    columns_of: Callable[[np.ndarray], np.ndarray]
+    robot: Robot
+    rec: Recording
+    measure: np.ndarray
+    ctx_all: EffectContext
+    ctx: EffectContext
+    mea: Recording
+    ver: Recording
+    clusters: np.ndarray
+    phi_cache: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
     @property
-    def dof(self) -> int:
-        return self.residuals.size - self.basis.shape[1]
+    def length_mm(self) -> float:
+        return self.robot.characteristic_length_mm
+
+    def phi(self, group: TermGroup) -> np.ndarray:
+        if group.key not in self.phi_cache:
+            self.phi_cache[group.key] = group.phi(self.ctx)
+        return self.phi_cache[group.key]
+
+    def phi_of(self, groups: list[TermGroup]) -> np.ndarray | None:
+        return np.concatenate([self.phi(g) for g in groups], axis=2) if groups else None
 
 
-def _null_model(robot: Robot, mea: Recording) -> _NullModel:
-    lc = robot.characteristic_length_mm
-    geo = identify(robot, mea.legs_mm, mea.meas, estimator="ls")
-    r_mm, J_mm = residual_function(robot, mea.legs_mm, mea.meas, "forward", lc)(geo.x)
-    W = _whitener(r_mm, J_mm, mea.n)
-    J0 = _whiten(J_mm, W, mea.n)
-    Q0 = _orth(J0)
-    r0 = _whiten(r_mm, W, mea.n)
-
-    def columns_of(phi: np.ndarray) -> np.ndarray:
-        """Whitened residual Jacobian columns of an effect's parameters at the geometric solution."""
-        x = np.concatenate([geo.x, np.zeros(phi.shape[2])])
-        J = residual_function(robot, mea.legs_mm, mea.meas, "forward", lc, phi)(x)[1]
-        return _whiten(J[:, N_GEO:], W, mea.n)
-
-    return _NullModel(geo, r0 - Q0 @ (Q0.T @ r0), J0, Q0, W, mea.n, columns_of)
+def _names(groups: list[TermGroup]) -> tuple[str, ...]:
+    return tuple(n for g in groups for n in g.names)
 
 
-def _group_tests(
-    null: _NullModel, groups: dict[str, np.ndarray], n_boot: int, seed: int
-) -> dict[str, tuple[float, float, float, np.ndarray, np.ndarray]]:
-    """Added-variable F, its bootstrap and F-distribution p-values, per group of effect regressors.
+def fit_model(p: _Problem, groups: list[TermGroup], bounded: bool = False) -> IdentificationResult:
+    """Least squares of geometry + groups on the measure rows; with `bounded`, library parameters stay physical."""
+    phi = p.phi_of(groups)
+    fit = identify(p.robot, p.mea.legs_mm, p.mea.meas, estimator="ls", extra_regressors=phi,
+                   extra_names=_names(groups))
+    if not bounded or not any(g.physical_range is not None for g in groups):
+        return fit
+    lo = np.full(fit.x.size, -np.inf)
+    hi = np.full(fit.x.size, np.inf)
+    k = N_GEO
+    for g in groups:
+        if g.physical_range is not None:
+            lo[k:k + g.n_params], hi[k:k + g.n_params] = g.physical_range.low, g.physical_range.high
+        k += g.n_params
+    if np.all((fit.x >= lo) & (fit.x <= hi)):
+        return fit
+    fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, phi)
+    span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
+    x0 = np.clip(fit.x, lo + 1e-9 * span, hi - 1e-9 * span)
+    sol = least_squares(lambda x: fun(x)[0], x0, jac=lambda x: fun(x)[1], bounds=(lo, hi), method="trf",
+                        x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    r = sol.fun
+    return dataclasses.replace(fit, x=sol.x, residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))),
+                               rms_residual=float(np.sqrt(np.mean(r**2))), converged=bool(sol.status > 0),
+                               message=f"bounded refit: {sol.message}")
 
-    Returns name -> (F, p_bootstrap, p_F, basis of the part the geometry cannot absorb, raw columns).
-    """
-    r0, Q0, m = null.residuals, null.basis, null.residuals.size
-    signs = np.random.default_rng(seed).choice([-1.0, 1.0], size=(null.n_poses, n_boot))
-    R_star = (_leverage_adjusted(r0, Q0, null.n_poses)[:, :, None] * signs[:, None, :]).reshape(m, n_boot)
-    R_star -= Q0 @ (Q0.T @ R_star)
-    rss0, rss_star = float(r0 @ r0), np.sum(R_star**2, axis=0)
 
-    def f_stat(Qk: np.ndarray, r: np.ndarray, rss: np.ndarray | float) -> np.ndarray:
-        explained = np.sum((Qk.T @ r) ** 2, axis=0)
-        return (explained / Qk.shape[1]) / ((rss - explained) / (null.dof - Qk.shape[1]))
+def predict(p: _Problem, fit: IdentificationResult, groups: list[TermGroup], rows: np.ndarray,
+            leg_offsets_mm: np.ndarray | float = 0.0) -> np.ndarray:
+    """Poses the model predicts from the recorded leg lengths of some rows (mm, deg), optionally offset."""
+    ctx = p.ctx_all.rows(rows)
+    legs = p.rec.legs_mm[rows] + leg_offsets_mm
+    if groups:
+        legs = legs + np.concatenate([g.phi(ctx) for g in groups], axis=2) @ fit.x[N_GEO:]
+    return forward_kinematics(fit.geometry(p.robot), legs, p.rec.meas[rows])
 
-    out = {}
-    for name, phi in groups.items():
-        X = null.columns_of(phi)
-        Xt = X - Q0 @ (Q0.T @ X)
-        Qk = _orth(Xt, rel_tol=1e-6)
-        if Qk.shape[1] == 0 or np.linalg.norm(Xt) <= 1e-9 * np.linalg.norm(X):
+
+def verify_accuracy(p: _Problem, fit: IdentificationResult, groups: list[TermGroup]) -> AccuracySummary | None:
+    rows = ~p.measure
+    if not rows.any():
+        return None
+    return AccuracySummary.of(p.rec.meas[rows], predict(p, fit, groups, rows))
+
+
+def leg_residuals(p: _Problem, fit: IdentificationResult, groups: list[TermGroup]) -> np.ndarray:
+    """Per-leg length residuals (mm) of every row: length implied by the measured pose minus the modelled length."""
+    legs = p.rec.legs_mm
+    if groups:
+        legs = legs + np.concatenate([g.phi(p.ctx_all) for g in groups], axis=2) @ fit.x[N_GEO:]
+    return implicit_residuals(fit.geometry(p.robot), legs, p.rec.meas)
+
+
+def _state(p: _Problem, fit: IdentificationResult, groups: list[TermGroup]) -> tuple[ModelState, np.ndarray]:
+    """The model linearized and whitened at its fit, and d(residual)/d(dl0) per leg for new groups' columns."""
+    fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
+    r, J = fun(fit.x)
+    n = p.mea.n
+    W = pooled_whitener(r, J, n)
+    state = ModelState.build(whiten(r, W, n), whiten(J, W, n), W, n, p.clusters)
+    return state, J.reshape(n, 6, -1)[:, :, DL0_COLUMNS]
+
+
+def _columns(p: _Problem, state: ModelState, d_dl0: np.ndarray, group: TermGroup) -> np.ndarray:
+    cols = np.einsum("nal,nlq->naq", d_dl0, p.phi(group)).reshape(6 * p.mea.n, -1)
+    return whiten(cols, state.W, state.n_poses)
+
+
+def _clusters(mea: Recording) -> np.ndarray:
+    labels = np.arange(mea.n)
+    for group in find_repeats(mea):
+        labels[group] = group[0]
+    return labels
+
+
+def _problem(rec: Recording, robot: Robot) -> _Problem:
+    measure = rec.phase == "measure"
+    ctx_all = EffectContext.from_recording(rec, robot)
+    mea = rec.select("measure")
+    return _Problem(robot, rec, measure, ctx_all, ctx_all.rows(measure), mea, rec.select("verify"), _clusters(mea))
+
+
+def _aliases(best: GroupTest, tests: list[GroupTest]) -> tuple[TermGroup, ...]:
+    """Other periods of the same leg, beyond the frequency resolution, that explain nearly as much."""
+    g = best.group
+    assert g.period_mm is not None and g.curve_range is not None
+    resolution = 1.0 / max(g.curve_range[1] - g.curve_range[0], 1e-9)
+    return tuple(
+        t.group for t in tests
+        if t.eligible and t.group.leg == g.leg and t.group.period_mm is not None
+        and abs(1.0 / t.group.period_mm - 1.0 / g.period_mm) > resolution
+        and t.press_gain >= ALIAS_GAIN * best.press_gain
+    )
+
+
+def _candidate_results(first: list[GroupTest], library: list[TermGroup], untestable: dict[str, str],
+                       chosen_keys: set[str]) -> tuple[CandidateResult, ...]:
+    by_key = {t.group.key: t for t in first}
+    out = [CandidateResult(name, name, False, reason) for name, reason in untestable.items()]
+    for g in library:
+        t = by_key.get(g.key)
+        if t is None:
+            out.append(CandidateResult(g.key, g.title, False, "absorbed by the geometric parameters"))
             continue
-        f = float(f_stat(Qk, r0, rss0))
-        p_boot = float((1 + np.sum(f_stat(Qk, R_star, rss_star) >= f)) / (n_boot + 1))
-        p_f = float(f_dist.sf(f, Qk.shape[1], null.dof - Qk.shape[1]))
-        out[name] = (f, p_boot, p_f, Qk, X)
-    return out
+        out.append(CandidateResult(g.key, g.title, True, None, t.f_statistic, t.p_value, t.cv_rms_mm,
+                                   t.significant, t.rejected, g.key in chosen_keys))
+    return tuple(out)
+
+
+@dataclasses.dataclass
+class _Selection:
+    """The outcome of forward selection with backward elimination."""
+
+    chosen: list[TermGroup]
+    steps: list[Step]
+    first_tests: list[GroupTest]
+    rejected: dict[str, str]
+    alternatives: dict[str, tuple[TermGroup, ...]]
+    ambiguous: tuple[str, ...]
+
+
+def _drop_test(p: _Problem, chosen: list[TermGroup], group: TermGroup, alpha: float, n_boot: int,
+               seed: int) -> GroupTest | None:
+    """The test of a chosen group given all the others (None when the others absorb it)."""
+    others = [g for g in chosen if g is not group]
+    state, d_dl0 = _state(p, fit_model(p, others), others)
+    tests = assess(state, [group], [_columns(p, state, d_dl0, group)], alpha, n_boot, seed)
+    return tests[0] if tests else None
+
+
+def _cv_mm(p: _Problem, groups: list[TermGroup]) -> float:
+    """Leave-one-cluster-out residual RMS (mm) of a model: comparable across models."""
+    state, _ = _state(p, fit_model(p, groups), groups)
+    return state.cv_rms(state.loo.residuals(state.r0))[1]
+
+
+def _swap(p: _Problem, sel: _Selection, library: list[TermGroup], alpha: float, n_boot: int, seed: int) -> None:
+    """Replace a chosen library effect by another when that predicts held-out poses better (greedy is myopic)."""
+    best_cv = _cv_mm(p, sel.chosen)
+    improved = True
+    while improved:
+        improved = False
+        chosen_keys = {g.key for g in sel.chosen}
+        for old in [g for g in sel.chosen if g.kind == LIBRARY]:
+            for new in library:
+                if new.key in chosen_keys or new.key in sel.rejected:
+                    continue
+                trial = [new if g is old else g for g in sel.chosen]
+                cv = _cv_mm(p, trial)
+                if cv >= best_cv:
+                    continue
+                test = _drop_test(p, trial, new, alpha, n_boot, seed)
+                if test is None or not test.eligible:
+                    continue
+                fit = fit_model(p, trial)
+                sel.chosen, best_cv, improved = trial, cv, True
+                sel.steps.append(Step(len(sel.steps) + 1, new.key, new.effect, new.kind, new.title, test.rank,
+                                      test.f_statistic, test.p_value, test.p_wild, test.p_gauss,
+                                      sel.steps[-1].cv_rms_mm, cv, verify_accuracy(p, fit, trial), (old.key,)))
+                break
+            if improved:
+                break
+
+
+def _select(p: _Problem, candidates: list[TermGroup], alpha: float, n_boot: int, seed: int, max_steps: int,
+            state: ModelState, d_dl0: np.ndarray) -> _Selection:
+    """Forward selection (alpha / k at step k) with backward elimination of groups that the later ones explain."""
+    sel = _Selection([], [], [], {}, {}, ())
+    remaining = list(candidates)
+    dropped: set[str] = set()
+    for index in range(1, max_steps + 1):
+        cv_now = state.cv_rms(state.loo.residuals(state.r0))[1]
+        columns = [_columns(p, state, d_dl0, g) for g in remaining]
+        tests = assess(state, remaining, columns, alpha / index, n_boot, seed + index)
+        if index == 1:
+            sel.first_tests = tests
+        for t in tests:
+            if t.rejected and t.significant:
+                sel.rejected[t.group.key] = t.rejected
+        best = choose(tests)
+        log.info("selection_step", step=index, n_candidates=len(tests), chosen=None if best is None else best.group.key)
+        if best is None:
+            break
+        if not sel.steps and best.group.kind == LIBRARY:
+            sel.ambiguous = tuple(t.group.key for t in tests if t is not best and t.eligible
+                                  and t.group.kind == LIBRARY and similar(best, t) > SIMILAR_SIGNATURE)
+        sel.chosen.append(best.group)
+        if best.group.period_mm is not None:
+            sel.alternatives[best.group.key] = _aliases(best, tests)
+        removed = []
+        while len(sel.chosen) > 1:
+            drops = {g.key: _drop_test(p, sel.chosen, g, alpha, n_boot, seed + 100 * index) for g in sel.chosen[:-1]}
+            p_drop = {k: 1.0 if t is None else t.p_value for k, t in drops.items()}
+            worst = max(p_drop, key=lambda k: p_drop[k])
+            if p_drop[worst] < alpha:
+                break
+            sel.chosen = [g for g in sel.chosen if g.key != worst]
+            removed.append(worst)
+            dropped.add(worst)
+        done = {(g.leg, g.variable) for g in sel.chosen if g.kind == GENERIC}
+        sel.rejected.pop(best.group.key, None)
+        remaining = [g for g in remaining if g.key != best.group.key and g.key not in dropped
+                     and not (g.kind == GENERIC and (g.leg, g.variable) in done)]
+        fit = fit_model(p, sel.chosen)
+        sel.steps.append(Step(index, best.group.key, best.group.effect, best.group.kind, best.group.title, best.rank,
+                              best.f_statistic, best.p_value, best.p_wild, best.p_gauss, cv_now, best.cv_rms_mm,
+                              verify_accuracy(p, fit, sel.chosen), tuple(removed)))
+        state, d_dl0 = _state(p, fit, sel.chosen)
+    if sel.chosen:
+        _swap(p, sel, [g for g in candidates if g.kind == LIBRARY], alpha, n_boot, seed + 999)
+    return sel
 
 
 def diagnose(
-    rec: Recording, robot: Robot, *, alpha: float = 0.05, n_boot: int = 1999, seed: int = 0,
-    candidates: tuple[Candidate, ...] = CANDIDATES,
+    rec: Recording, robot: Robot, *, alpha: float = DEFAULT_ALPHA, n_boot: int = 999, seed: int = 0,
+    cmm_sigma_mm: float | None = None, max_steps: int = MAX_STEPS, generic: bool = True,
 ) -> Diagnosis:
     """Locate, name and model the physics that the rigid geometric model leaves out of a recording."""
-    ctx_all = EffectContext.from_recording(rec, robot)
-    is_measure = rec.phase == "measure"
-    ctx = ctx_all.rows(is_measure)
-    mea = rec.select("measure")
-    null = _null_model(robot, mea)
-    geo, r0, J0 = null.fit, null.residuals, null.jacobian
+    p = _problem(rec, robot)
+    library, untestable = library_groups(p.ctx, robot)
+    candidates = library + (generic_groups(p.ctx) if generic else [])
+    geo = fit_model(p, [])
+    state, d_dl0 = _state(p, geo, [])
+    cv_geometry = state.cv_rms(state.loo.residuals(state.r0))[1]
 
-    titles = {c.name: c.title for c in candidates}
-    titles[OMNIBUS] = "structure no candidate describes (generic stroke/time basis)"
-    reasons = {c.name: c.applicable(ctx) for c in candidates}
-    groups = {c.name: c.regressor(ctx) for c in candidates if reasons[c.name] is None}
-    groups[OMNIBUS] = _omnibus_regressors(ctx)
-    raw = _group_tests(null, groups, n_boot, seed)
-    names = list(raw)
-    p_holm = dict(zip(names, _holm(np.array([max(raw[n][1], raw[n][2]) for n in names])), strict=True))
+    sel = _select(p, candidates, alpha, n_boot, seed, max_steps, state, d_dl0)
+    chosen, steps, rejected, alternatives = sel.chosen, sel.steps, sel.rejected, sel.alternatives
+    cv_final = _cv_mm(p, chosen) if chosen else cv_geometry
 
-    W_inv = np.linalg.inv(null.whitener)
-    cv0_w, cv0 = _loo_cv_rms(r0, J0, null.n_poses, W_inv)
-    tests: list[EffectTest] = []
-    for name, title in titles.items():
-        q = groups[name].shape[2] if name in groups else 0
-        if name not in raw:
-            tests.append(EffectTest(name, title, q, False, reasons.get(name) or "absorbed by the geometric parameters"))
-            continue
-        f, p_boot, p_f, _, X = raw[name]
-        cv_w, cv = _loo_cv_rms(r0, np.concatenate([J0, X], axis=1), null.n_poses, W_inv)
-        significant = bool(p_holm[name] < alpha)
-        tests.append(EffectTest(name, title, q, True, None, f, p_boot, p_f, p_holm[name], cv, cv_w, significant,
-                                significant and cv_w < cv0_w and name != OMNIBUS))
-    supported = sorted((t for t in tests if t.supported), key=lambda t: t.cv_rms_whitened)
-    untestable = {t.name: t.reason for t in tests if not t.applicable and t.reason}
+    final = fit_model(p, chosen, bounded=True)
+    r_final, J_final = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm,
+                                         p.phi_of(chosen))(final.x)
+    cov = cluster_robust_covariance(J_final, r_final, p.mea.n)
+    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    before = verify_accuracy(p, geo, [])
+    after = verify_accuracy(p, final, chosen)
 
-    mea_verify = rec.select("verify")
-    geo_pred = (_predict(robot, geo, mea_verify.legs_mm, mea_verify.meas, None) if mea_verify.n else None)
-    before = AccuracySummary.of(mea_verify.meas, geo_pred) if mea_verify.n else None
-    leg_res = _leg_residuals(robot, geo, rec)
-    findings = _locate(rec, ctx_all, leg_res)
+    residuals_all = pose_difference(rec.meas, predict(p, geo, [], np.ones(rec.n, dtype=bool)), p.length_mm)
+    noise = noise_yardstick(rec, robot, residuals_all, p.length_mm, cmm_sigma_mm)
+    r_geo, J_geo = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm)(geo.x)
+    ratio = None
+    if noise.chosen is not None:
+        ratio = noise_comparison(p.robot, p.mea.meas, noise.chosen.covariance[p.measure], (r_geo, J_geo),
+                                 (r_final, J_final), p.length_mm)
+    shift = session_shift(p.ctx_all, p.measure, leg_residuals(p, final, chosen), rec,
+                          lambda rows, offsets: predict(p, final, chosen, rows, offsets))
+    shapes = shapes_for(robot, p.ctx, final, cov, J_final, chosen, steps, before, alternatives, seed)
 
-    if not supported:
-        structured = [t for t in tests if t.significant]
-        effect = "unexplained" if structured else "none"
-        if effect == "none":
-            explanation = ("No missing physics found: no candidate effect and no generic structure is significant "
-                           f"(all Holm-corrected bootstrap p >= {alpha}); the geometric model explains this "
-                           "recording to within its measurement noise.")
-        else:
-            what = "; ".join(f.text for f in findings[:3]) or "no single leg or driver stands out"
-            explanation = ("Unexplained structure: the residuals of the geometric fit are structured "
-                           f"({', '.join(f'{t.name} p = {t.p_holm:.3g}' for t in structured)}), but no candidate "
-                           f"both explains it and predicts held-out poses better. Where it shows: {what}.")
-        return Diagnosis(effect, explanation, {}, {}, before, before, tuple(tests), (), cv0, None, findings,
-                         geo, None, leg_res, ctx_all)
-
-    best = supported[0]
-    cand = CANDIDATES_BY_NAME[best.name]
-    phi = cand.regressor(ctx)
-    fit = identify(robot, mea.legs_mm, mea.meas, estimator="ls", extra_regressors=phi,
-                   extra_names=cand.parameter_names())
-    r1, J1 = residual_function(robot, mea.legs_mm, mea.meas, "forward", robot.characteristic_length_mm, phi)(fit.x)
-    se = _cluster_robust_se(J1, r1, mea.n)[N_GEO:]
-    basis_of = {name: raw[name][3] for name in raw}
-    signature = basis_of[best.name] @ (basis_of[best.name].T @ r0)
-    ambiguous = []
-    for other in supported[1:]:
-        s2 = basis_of[other.name] @ (basis_of[other.name].T @ r0)
-        cos = float(signature @ s2 / (np.linalg.norm(signature) * np.linalg.norm(s2) + 1e-300))
-        if cos > SIMILAR_SIGNATURE:
-            ambiguous.append(other.name)
-    after = None
-    if mea_verify.n:
-        phi_v = cand.regressor(ctx_all.rows(~is_measure))
-        after = AccuracySummary.of(mea_verify.meas, _predict(robot, fit, mea_verify.legs_mm, mea_verify.meas, phi_v))
-    explanation = _explain(cand, fit, se, best, cv0, tuple(ambiguous), untestable)
-    params = {n: float(v) for n, v in zip(fit.names[N_GEO:], fit.x[N_GEO:], strict=True)}
-    log.info("diagnosed", effect=best.name, p_holm=best.p_holm, cv_rms_mm=best.cv_rms_mm, cv0_mm=cv0)
-    return Diagnosis(best.name, explanation, params, dict(zip(params, map(float, se), strict=True)), before, after,
-                     tuple(tests), tuple(ambiguous), cv0, best.cv_rms_mm, findings, geo, fit, leg_res, ctx_all)
-
-
-def _leg_residuals(robot: Robot, geo: IdentificationResult, rec: Recording) -> np.ndarray:
-    """Per-leg length residuals (mm) of every row: length implied by the measured pose minus recorded + dl0."""
-    return implicit_residuals(geo.geometry(robot), rec.legs_mm, rec.meas)
+    effects: list[str] = []
+    for g in chosen:
+        if g.effect not in effects:
+            effects.append(g.effect)
+    if ratio is not None and ratio.ratio_final >= explain.FAR_ABOVE_NOISE and "unexplained" not in effects:
+        effects.append("unexplained")
+    effect = effects[0] if effects else "none"
+    params = {n: float(v) for n, v in zip(final.names[N_GEO:], final.x[N_GEO:], strict=True)}
+    std = {n: float(s) for n, s in zip(final.names[N_GEO:], se[N_GEO:], strict=True)}
+    leg_res = leg_residuals(p, geo, [])
+    findings = locate(p.ctx_all, rec, leg_res)
+    explanation = explain.compose(effect, effects, chosen, steps, params, std, noise, ratio, shapes, shift,
+                                  rejected, untestable, sel.ambiguous, before, after, findings)
+    log.info("diagnosed", effects=effects, steps=len(steps))
+    return Diagnosis(
+        effect=effect, effects=tuple(effects), explanation=explanation, parameters=params, std_errors=std,
+        before=before, after=after, steps=tuple(steps),
+        candidates=_candidate_results(sel.first_tests, library, untestable, {g.key for g in chosen}),
+        rejected=tuple(rejected.items()), ambiguous_with=sel.ambiguous, cv_rms_geometry_mm=cv_geometry,
+        cv_rms_final_mm=cv_final, noise=noise, noise_ratio=ratio, shapes=tuple(shapes), session_shift=shift,
+        findings=findings, groups=tuple(chosen), geometry_fit=geo, final_fit=final, leg_residuals_mm=leg_res,
+        leg_residuals_final_mm=leg_residuals(p, final, chosen), context=p.ctx_all, measure=p.measure,
+    )

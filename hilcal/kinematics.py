@@ -58,7 +58,7 @@ def split_pose(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def leg_vectors(geom: Geometry, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Leg vectors R a_i + t - b_i [..., 6, 3], their lengths [..., 6] and unit directions [..., 6, 3]."""
-    ra = np.einsum("...jk,ik->...ij", R, geom.a)
+    ra = np.swapaxes(R @ geom.a.T, -1, -2)
     v = ra + t[..., None, :] - geom.b
     length = np.linalg.norm(v, axis=-1)
     return v, length, v / length[..., None]
@@ -77,7 +77,7 @@ def inverse_jacobian(geom: Geometry, R: np.ndarray, t: np.ndarray) -> np.ndarray
     Row i is [u_i, (R a_i) x u_i]: the classic Stewart-platform inverse Jacobian.
     """
     _, _, u = leg_vectors(geom, R, t)
-    ra = np.einsum("...jk,ik->...ij", R, geom.a)
+    ra = np.swapaxes(R @ geom.a.T, -1, -2)
     return np.concatenate([u, np.cross(ra, u)], axis=-1)
 
 

@@ -101,6 +101,8 @@ class CmmSpec(_Strict):
     platform_spheres_mm: Annotated[list[Vec3], Field(min_length=3)]
     base_spheres_mm: Annotated[list[Vec3], Field(min_length=3)]
     sphere_radius_mm: float = Field(default=12.7, gt=0, description="radius of the tooling spheres")
+    sphere_sigma_mm: float | None = Field(
+        default=None, gt=0, description="standard uncertainty of one measured sphere-centre coordinate (optional)")
 
     @field_validator("platform_spheres_mm", "base_spheres_mm")
     @classmethod
@@ -230,6 +232,11 @@ class Robot:
     @property
     def sphere_radius_mm(self) -> float:
         return self.spec.cmm.sphere_radius_mm
+
+    @property
+    def sphere_sigma_mm(self) -> float | None:
+        """The CMM's stated sphere-centre uncertainty (mm), if the robot file gives one."""
+        return self.spec.cmm.sphere_sigma_mm
 
     @property
     def characteristic_length_mm(self) -> float:

@@ -25,6 +25,7 @@ from matplotlib.figure import Figure
 
 from hilcal.identification import IdentificationResult
 from hilcal.metrics import AccuracySummary, Indicators
+from hilcal.time_report import time_html
 
 INDICATORS = ("max", "range", "mean", "rms")
 INDICATOR_LABELS = {"max": "maximum", "range": "range", "mean": "average", "rms": "RMS"}
@@ -63,6 +64,8 @@ class RunReport:
     compensation: dict
     upload: dict | None
     warnings: tuple[str, ...] = ()
+    machine_time: dict | None = None
+    """``hilcal.time_report.time_section``: estimated against actual time per phase."""
 
     def __post_init__(self) -> None:
         if self.identifications and self.chosen not in self.identifications:
@@ -191,6 +194,7 @@ def report_json(r: RunReport) -> dict[str, Any]:
         "robot": {"name": r.robot_name},
         "times": {"started_at": r.started_at, "finished_at": r.finished_at},
         "warnings": list(r.warnings),
+        "machine_time": r.machine_time,
     }
     return _jsonable(out)
 
@@ -458,6 +462,7 @@ def report_html(r: RunReport) -> str:
 <tr><th>started / finished</th><td>{_esc(r.started_at)} / {_esc(r.finished_at)}</td></tr></table>
 <p>verification (measured): {_esc(headline)}</p>
 <h2>Verification errors before and after calibration (cf. paper Table 7)</h2>{_table7_html(r)}
+<h2>Machine time: estimated against actual</h2>{time_html(r.machine_time)}
 <h2>Absolute position error at the verification poses (cf. paper Fig. 13)</h2>
 {img(_per_pose_plot(r, 0, "position", "mm"), "position error per verification pose")}
 <h2>Absolute orientation error at the verification poses (cf. paper Fig. 14)</h2>

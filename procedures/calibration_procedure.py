@@ -22,10 +22,13 @@ from hilcal.kinematics import forward_kinematics, inverse_kinematics
 from hilcal.recording import Recording, recording_from_arrays
 from hilcal.robot import Robot
 from procedures import messages as m
-from procedures.plan import CalibrationPlan, waypoints
+from procedures.plan import CalibrationPlan, return_waypoints, waypoints
+from procedures.records import parameter_diff
 
 PRE_PHASES = ("measure", "verify")
 AFTER_PHASE = "verify_after"
+TIMED_PHASES = (*PRE_PHASES, AFTER_PHASE, "return_home")
+"""Phases whose start and end the procedure journals (checkpoints phase_start:NAME, phase_end:NAME)."""
 
 
 @dataclass(frozen=True)
@@ -69,6 +72,37 @@ def recording_from_rows(rows: list[dict], robot: Robot) -> Recording:
     )
 
 
+def identification_summary(result: ProcedureResult, top: int = 12) -> dict[str, Any]:
+    """Both estimators' fit and verification accuracy, and the chosen one's largest parameters (mm)."""
+    estimators = {}
+    for name, outcome in result.outcomes.items():
+        ident = outcome.identification
+        estimators[name] = {"converged": ident.converged, "max_residual_mm": ident.max_abs_residual,
+                            "rms_residual_mm": ident.rms_residual, "model": ident.model,
+                            "verify_before": outcome.before.brief() if outcome.before else None,
+                            "verify_identified_model": outcome.after.brief() if outcome.after else None}
+    chosen = result.outcomes[result.chosen].identification
+    std = chosen.std_errors if chosen.std_errors is not None else [None] * len(chosen.names)
+    order = np.argsort(-np.abs(chosen.x))[:top]
+    largest = [{"name": chosen.names[i], "value_mm": float(chosen.x[i]),
+                "std_mm": None if std[i] is None else float(std[i])} for i in order]
+    return {"chosen": result.chosen, "estimators": estimators, "largest_parameters": largest,
+            "n_parameters": len(chosen.names)}
+
+
+def approval_detail(before: ParameterSet, new: ParameterSet, result: ProcedureResult) -> dict[str, Any]:
+    """What the operator reads before approving the upload: every changed parameter and the predicted gain."""
+    comp = result.compensation
+    assert comp is not None
+    outcome = result.outcomes[result.chosen]
+    return {"estimator": result.chosen, "mode": comp.mode, "new_sha256": new.sha256(),
+            "live_sha256": before.sha256(), "diff": parameter_diff(before, new),
+            "measured_before": outcome.before.brief() if outcome.before else None,
+            "predicted_after": comp.predicted.brief(),
+            "predicted_basis": f"identified model, {comp.predicted.n_poses} workspace poses",
+            "uncompensated": None if comp.uncompensated is None else comp.uncompensated.brief()}
+
+
 def visit(geom: ControllerGeometry, pose: np.ndarray, target: np.ndarray, plan: CalibrationPlan,
           label: str) -> Generator[Any, Any, np.ndarray]:
     """Move from `pose` to `target` in bounded steps, arriving with every leg extending; returns the target."""
@@ -77,19 +111,36 @@ def visit(geom: ControllerGeometry, pose: np.ndarray, target: np.ndarray, plan: 
         legs = inverse_kinematics(ik, waypoint)
         if kind == "approach":
             legs = legs - plan.approach_mm
+        elif kind == "retreat":
+            legs = legs - plan.repeat_retreat_mm
         yield m.MoveLegs(m.as_tuple(legs), f"{label} {kind}")
     return target
 
 
+def return_home(geom: ControllerGeometry, pose: np.ndarray, robot: Robot, plan: CalibrationPlan
+                ) -> Generator[Any, Any, np.ndarray]:
+    """Back to the home pose in bounded steps (nothing is measured there, so no approach); phase return_home."""
+    ik = geom.ik_geometry()
+    yield m.Checkpoint("phase_start:return_home")
+    for kind, waypoint in return_waypoints(ik, pose, robot.home, plan):
+        yield m.MoveLegs(m.as_tuple(inverse_kinematics(ik, waypoint)), f"return home {kind}")
+    yield m.Checkpoint("phase_end:return_home")
+    return robot.home
+
+
 def _measure_phase(phase: str, poses: np.ndarray, geom: ControllerGeometry, pose: np.ndarray,
                    plan: CalibrationPlan) -> Generator[Any, Any, np.ndarray]:
+    """Visit and measure the phase's poses not yet in the journal; checkpoints time the phase (first start kept)."""
     done = {row["index"] for row in (yield m.Recall((phase,)))}
-    for k, target in enumerate(poses):
-        if k in done:
-            continue
-        pose = yield from visit(geom, pose, target, plan, f"{phase} {k + 1}")
+    todo = [k for k in range(len(poses)) if k not in done]
+    if todo and not done:
+        yield m.Checkpoint(f"phase_start:{phase}")
+    for k in todo:
+        pose = yield from visit(geom, pose, poses[k], plan, f"{phase} {k + 1}")
         yield m.Settle(plan.settle_s)
-        yield m.Measure(phase, k, m.as_tuple(target))
+        yield m.Measure(phase, k, m.as_tuple(poses[k]))
+    if todo:
+        yield m.Checkpoint(f"phase_end:{phase}")
     return pose
 
 
@@ -113,18 +164,21 @@ def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptio
     if result.problems and not options.force:
         yield m.Disable()
         result.status = "refused"
-        yield m.Checkpoint("refused", {"problems": result.problems})
+        yield m.Checkpoint("refused", {"problems": result.problems, "identification": identification_summary(result)})
         return result
     samples = design.verification_poses(robot, 64, plan.seed + 1)
     result.compensation = compensate(robot, geom, chosen, bool(info["offsets_only"]), samples)
     new_params = to_parameter_set(result.compensation.parameters)
-    yield m.Checkpoint("identified", {"estimator": options.estimator, "mode": result.compensation.mode})
+    yield m.Checkpoint("identified", {"estimator": options.estimator, "mode": result.compensation.mode,
+                                      "problems": result.problems, "identification": identification_summary(result)})
     yield m.Prompt("upload", f"Upload the {result.compensation.mode.replace('_', ' ')} parameter set "
-                             f"({options.estimator}) to the controller?")
+                             f"({options.estimator}) to the controller?",
+                   approval_detail(before, new_params, result))
     yield m.Disable()
     result.upload = yield m.Upload(new_params, options.save)
     yield m.Enable()
     pose = yield from _measure_phase(AFTER_PHASE, plan.poses("verify"), result.compensation.parameters, pose, plan)
+    pose = yield from return_home(result.compensation.parameters, pose, robot, plan)
     yield m.Disable()
     result.after_rows = yield m.Recall((AFTER_PHASE,))
     result.status = "complete"

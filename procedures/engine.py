@@ -4,7 +4,7 @@ Devices (`procedures.station.Devices`) hold a `drivers.controller_base.Controlle
 `drivers.controller_modbus.ControllerParams` and a `drivers.cmm_base.CmmInterface`, the robot and the
 CMM alignment. A fault, a lost
 device or an operator abort stops motion, keeps the journal and raises `RunInterrupted` with the way
-to resume.
+to resume. An optional observer (the operator panel) is told of every message, result, pause and stop.
 """
 
 from __future__ import annotations
@@ -27,6 +27,11 @@ log = structlog.get_logger(__name__)
 
 MOTION_STATES = (ControllerState.ENABLED, ControllerState.MOVING, ControllerState.IN_POSITION)
 
+EngineObserver = Callable[[str, dict[str, Any]], None]
+"""Called as observer(kind, data) on the engine's thread: "started", "message" {message} before a message is
+executed, "done" {message, result} after, "paused" {message}, "resumed" {message}, "stopped" {reason},
+"ended". An observer's exceptions are logged and ignored; a KeyboardInterrupt it raises is a Ctrl-C."""
+
 
 class RunInterrupted(RuntimeError):
     """The run stopped before completion (abort, device fault, lost device); the journal is kept."""
@@ -47,16 +52,26 @@ class Engine:
     """Runs one procedure; `confirm` answers prompts (None = unattended, every prompt answered yes)."""
 
     def __init__(self, devices: Any, journal: Journal, *, confirm: Callable[[str], bool] | None = None,
-                 on_measure: Callable[[dict], None] | None = None, move_timeout_s: float = 120.0) -> None:
+                 on_measure: Callable[[dict], None] | None = None, move_timeout_s: float = 120.0,
+                 observer: EngineObserver | None = None) -> None:
         self.devices = devices
         self.move_timeout_s = move_timeout_s
         self.journal = journal
         self.confirm = confirm
         self.on_measure = on_measure
+        self.observer = observer
         self.t0 = time.monotonic()
+
+    def _publish(self, kind: str, **data: Any) -> None:
+        if self.observer is not None:
+            try:
+                self.observer(kind, data)
+            except Exception as e:
+                log.warning("observer_failed", kind=kind, error=f"{type(e).__name__}: {e}")
 
     def run(self, procedure: Generator[Any, Any, Any]) -> Any:
         result: Any = None
+        self._publish("started")
         try:
             while True:
                 msg = procedure.send(result)
@@ -72,6 +87,8 @@ class Engine:
         except Exception as e:
             self._stop_motion(f"{type(e).__name__}: {e}")
             raise RunInterrupted(f"{type(e).__name__}: {e}") from e
+        finally:
+            self._publish("ended")
 
     def _dispatch_pausable(self, msg: object) -> Any:
         """Ctrl-C pauses: motion stops; an operator may go on (the message is executed again) or abort.
@@ -81,12 +98,17 @@ class Engine:
         """
         while True:
             try:
-                return self._dispatch(msg)
+                self._publish("message", message=msg)
+                result = self._dispatch(msg)
+                self._publish("done", message=msg, result=result)
+                return result
             except KeyboardInterrupt:
                 self._stop_motion("paused by the operator (Ctrl-C)")
+                self._publish("paused", message=type(msg).__name__)
                 if self.confirm is None or not self._ask_continue():
                     raise RunInterrupted("aborted by the operator") from None
                 self.journal.event("resumed_after_pause", message=type(msg).__name__)
+                self._publish("resumed", message=type(msg).__name__)
                 if isinstance(msg, m.MoveLegs | m.Measure | m.Settle):
                     self._on_enable(m.Enable())
 
@@ -99,6 +121,7 @@ class Engine:
     def _stop_motion(self, reason: str) -> None:
         self.journal.event("interrupted", reason=reason)
         log.error("run_interrupted", reason=reason)
+        self._publish("stopped", reason=reason)
         try:
             self.devices.controller.stop()
         except Exception as e:

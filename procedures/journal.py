@@ -97,8 +97,18 @@ class Journal:
         row = self._db.execute("SELECT value_json FROM steps WHERE key = ?", (key,)).fetchone()
         return None if row is None else json.loads(row[0])
 
+    def step_time(self, key: str) -> float | None:
+        """Wall-clock time (s since the epoch) at which the step was last written, None if never."""
+        row = self._db.execute("SELECT time FROM steps WHERE key = ?", (key,)).fetchone()
+        return None if row is None else float(row[0])
+
     def set_step(self, key: str, value: Any) -> None:
         self._db.execute("INSERT OR REPLACE INTO steps VALUES (?, ?, ?)", (key, time.time(), json.dumps(value)))
+
+    def count_events(self, *kinds: str) -> int:
+        """How many events of these kinds were journaled."""
+        marks = ",".join("?" * len(kinds))
+        return int(self._db.execute(f"SELECT COUNT(*) FROM events WHERE kind IN ({marks})", kinds).fetchone()[0])
 
     def event(self, kind: str, **data: Any) -> None:
         self._db.execute("INSERT INTO events (time, kind, data_json) VALUES (?, ?, ?)",

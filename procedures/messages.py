@@ -17,6 +17,8 @@ class Prompt:
 
     key: str
     text: str
+    detail: dict | None = None
+    """What the operator should read before answering (e.g. the upload's parameter diff); shown, not asked."""
 
 
 @dataclass(frozen=True)

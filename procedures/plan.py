@@ -1,8 +1,9 @@
 """Calibration plans: the measurement and verification poses and the motion rules, stored with a hash.
 
 A plan is a JSON file; the same plan can be re-run later to check a machine. Every target is checked
-against the workspace and the leg limits (with the approach offset) when the plan is made or loaded,
-before any motion.
+against the workspace and the leg limits (with the approach offset and a repeat's retreat) when the plan
+is made or loaded, before any motion. New plans visit their poses in the order of least machine time
+(``hilcal.ordering``) and measure one pose four times in a row (a noise yardstick for the diagnosis).
 """
 
 from __future__ import annotations
@@ -10,14 +11,28 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from hilcal import design
 from hilcal.kinematics import Geometry, inverse_kinematics
+from hilcal.machine_time import (
+    MotionRules,
+    MotionTiming,
+    TimeEstimate,
+    calibration_phases,
+    estimate_route,
+    interpolated_poses,
+    move_costs,
+    repeatable_pose,
+)
+from hilcal.ordering import RouteOrder, order_route
 from hilcal.robot import POSE_AXES, LegLimitSpec, Robot
+
+REPEATS = 3
+"""Extra measurements of the repeated pose in the default plan (measured 4 times in a row)."""
 
 Pose = Annotated[list[float], Field(min_length=6, max_length=6)]
 
@@ -39,7 +54,17 @@ class CalibrationPlan(BaseModel):
                                description="every leg arrives extending by this much (same approach direction)")
     max_step_mm: float = Field(default=50.0, gt=0.0, description="largest leg-length change of one move")
     settle_s: float = Field(default=0.5, ge=0.0, description="wait after a move before measuring")
+    repeat_retreat_mm: float = Field(default=10.0, gt=0.0, le=100.0,
+                                     description="a repeat of the same pose first retracts every leg this much")
+    order: Literal["design", "time"] = Field(default="design", description="design order, or least machine time")
     seed: int = 0
+
+    @model_validator(mode="after")
+    def _retreat_leaves_the_pose(self) -> CalibrationPlan:
+        if self.repeat_retreat_mm < 3 * self.approach_mm:
+            raise ValueError(f"repeat_retreat_mm ({self.repeat_retreat_mm}) must be at least 3 × approach_mm "
+                             f"({self.approach_mm}): a repeat must leave the pose, not only re-approach it")
+        return self
 
     def sha256(self) -> str:
         """Hash of the canonical JSON: identifies the plan in journals, reports and records."""
@@ -66,29 +91,115 @@ def check_plan(plan: CalibrationPlan, robot: Robot) -> None:
             if outside:
                 raise PlanError(f"{phase} pose {k + 1} is outside the workspace in {', '.join(outside)}")
         legs = inverse_kinematics(nominal, poses)
+        repeat = np.concatenate([[False], np.all(poses[1:] == poses[:-1], axis=1)])
         for k, row in enumerate(legs):
-            if row.min() - plan.approach_mm < lo or row.max() > hi:
-                raise PlanError(f"{phase} pose {k + 1}: leg lengths {np.round(row, 1).tolist()} mm (approach "
-                                f"{plan.approach_mm} mm) leave the leg limits [{lo}, {hi}] mm")
+            low = plan.repeat_retreat_mm if repeat[k] else plan.approach_mm
+            if row.min() - low < lo or row.max() > hi:
+                what = f"repeat retreat {plan.repeat_retreat_mm}" if repeat[k] else f"approach {plan.approach_mm}"
+                raise PlanError(f"{phase} pose {k + 1}: leg lengths {np.round(row, 1).tolist()} mm ({what} mm) "
+                                f"leave the leg limits [{lo}, {hi}] mm")
+    _check_route(plan, robot)
+
+
+_LIMITS_ONLY = MotionTiming(1.0, 1.0, 0.0, 0.0)
+"""Any timing: the route check only looks at the leg setpoints."""
+
+
+def _check_route(plan: CalibrationPlan, robot: Robot) -> None:
+    """Every setpoint of the route from home through the phases and back stays within the leg limits.
+
+    Legs are not linear in the pose: the straight line between two reachable poses can leave the limits.
+    """
+    labels = ["home", *[f"measure pose {k + 1}" for k in range(len(plan.measure_poses))],
+              *[f"verify pose {k + 1}" for k in range(len(plan.verify_poses))] * 2]
+    route = np.vstack([robot.home, plan.poses("measure"), plan.poses("verify").reshape(-1, 6),
+                       plan.poses("verify").reshape(-1, 6)])
+    nominal = Geometry.nominal(robot)
+    ok = move_costs(nominal, route[:-1], route[1:], motion_rules(plan), _LIMITS_ONLY).within(robot.leg_limits)
+    back = move_costs(nominal, route[-1], robot.home, motion_rules(plan), _LIMITS_ONLY, approach=False)
+    for k in np.flatnonzero(~ok):
+        raise PlanError(f"the move from {labels[k]} to {labels[k + 1]} passes leg lengths outside the leg limits "
+                        f"{list(robot.leg_limits)} mm (legs are not linear in the pose); reorder or change the poses")
+    if not back.within(robot.leg_limits)[0]:
+        raise PlanError(f"the move from {labels[-1]} back home leaves the leg limits {list(robot.leg_limits)} mm")
+
+
+def distinct_measure_poses(plan: CalibrationPlan) -> tuple[np.ndarray, np.ndarray]:
+    """The plan's measure poses with repeats collapsed (in visit order) and how often each is measured in a row."""
+    rows = plan.poses("measure")
+    keep = np.concatenate([[True], np.any(rows[1:] != rows[:-1], axis=1)])
+    return rows[keep], np.diff(np.append(np.flatnonzero(keep), len(rows)))
+
+
+def motion_rules(plan: CalibrationPlan) -> MotionRules:
+    """The plan's motion rules for the machine-time model."""
+    return MotionRules(plan.max_step_mm, plan.approach_mm, plan.repeat_retreat_mm)
 
 
 def make_plan(robot: Robot, seed: int = 0, n_measure: int = 32, n_verify: int = 24, approach_mm: float = 2.0,
-              settle_s: float = 0.5) -> CalibrationPlan:
+              settle_s: float | None = None, *, timing: MotionTiming, order: Literal["design", "time"] = "time",
+              repeats: int = REPEATS) -> CalibrationPlan:
     """D-optimal measurement poses (factorial + coordinate exchange) and evenly spread verification poses.
 
     The poses are designed with the lower leg limit raised by the approach distance (plus 1 mm), so the
-    approach point of every pose is reachable too.
+    approach point of every pose is reachable too. settle_s None: the timing's settle wait.
     """
     lo, hi = robot.leg_limits
     margin = LegLimitSpec(min_mm=lo + approach_mm + 1.0, max_mm=hi)
     designable = Robot(robot.spec.model_copy(update={"leg_limits": margin}))
     measure = design.factorial_exchange(designable, n_measure, np.random.default_rng(seed)).poses
     verify = design.verification_poses(designable, n_verify, seed)
-    plan = CalibrationPlan(robot_name=robot.name, measure_poses=np.round(measure, 6).tolist(),
-                           verify_poses=np.round(verify, 6).tolist(), seed=seed, approach_mm=approach_mm,
-                           settle_s=settle_s)
+    return plan_from_poses(robot, measure, verify, timing=timing, seed=seed, approach_mm=approach_mm,
+                           settle_s=timing.settle_s if settle_s is None else settle_s, order=order, repeats=repeats)
+
+
+def plan_from_poses(robot: Robot, measure: np.ndarray, verify: np.ndarray, *, timing: MotionTiming, seed: int = 0,
+                    approach_mm: float = 2.0, settle_s: float = 0.5, order: Literal["design", "time"] = "time",
+                    repeats: int = REPEATS) -> CalibrationPlan:
+    """A checked plan of these poses: one measured 1 + `repeats` times in a row, in design or least-time order.
+
+    The repeated pose is the one with the most room below it for the retreat (``repeatable_pose``).
+    """
+    M, V = np.round(np.atleast_2d(measure), 6), np.round(np.atleast_2d(verify), 6).reshape(-1, 6)
+    base = CalibrationPlan(robot_name=robot.name, measure_poses=M.tolist(), verify_poses=V.tolist(), seed=seed,
+                           approach_mm=approach_mm, settle_s=settle_s, order=order)
+    counts = np.ones(len(M), dtype=int)
+    if repeats:
+        geom = Geometry.nominal(robot)
+        try:
+            counts[repeatable_pose(geom, M, robot.leg_limits[0], motion_rules(base))] += repeats
+        except ValueError as e:
+            raise PlanError(str(e)) from None
+    m_order, v_order = np.arange(len(M)), np.arange(len(V))
+    if order == "time":
+        route = order_plan_route(robot, M, V, base, timing, counts)
+        m_order, v_order = route.measure_order, route.verify_order
+    rows = np.repeat(M[m_order], counts[m_order], axis=0)
+    plan = base.model_copy(update={"measure_poses": rows.tolist(), "verify_poses": V[v_order].tolist()})
     check_plan(plan, robot)
     return plan
+
+
+def order_plan_route(robot: Robot, measure: np.ndarray, verify: np.ndarray, plan: CalibrationPlan,
+                     timing: MotionTiming, counts: np.ndarray) -> RouteOrder:
+    """The least-time order of distinct measure poses (measured counts[k] times) and verify poses, seeded."""
+    return order_route(Geometry.nominal(robot), robot.home, measure, verify, motion_rules(plan),
+                       timing_for(plan, timing), measure_counts=counts, seed=plan.seed, leg_limits=robot.leg_limits)
+
+
+def timing_for(plan: CalibrationPlan, timing: MotionTiming) -> MotionTiming:
+    """The station's timing with the plan's own settle wait (what the procedure really waits)."""
+    return MotionTiming(timing.leg_speed_mm_s, timing.leg_accel_mm_s2, plan.settle_s, timing.cmm_s_per_pose,
+                        timing.move_overhead_s)
+
+
+def estimate_plan(plan: CalibrationPlan, robot: Robot, timing: MotionTiming, start_pose: np.ndarray | None = None
+                  ) -> TimeEstimate:
+    """Estimated machine time of running the plan from start_pose (default home) and back home, per phase."""
+    start = robot.home if start_pose is None else np.asarray(start_pose, dtype=float)
+    return estimate_route(Geometry.nominal(robot), start, calibration_phases(plan.poses("measure"),
+                                                                             plan.poses("verify")),
+                          motion_rules(plan), timing_for(plan, timing), robot.home)
 
 
 def save_plan(plan: CalibrationPlan, path: Path) -> None:
@@ -112,17 +223,22 @@ def waypoints(geom: Geometry, start_pose: np.ndarray, target_pose: np.ndarray, p
               ) -> list[tuple[str, np.ndarray]]:
     """Intermediate poses so that no leg moves more than max_step_mm at once, then an approach point.
 
-    Poses are interpolated in pose space (the workspace box is convex); legs are not linear in the pose,
-    so the number of steps grows until every leg step is within the bound. The last two moves are the
-    approach point (every leg approach_mm shorter than at the target) and the target itself, so each pose
-    is reached with every leg extending: joint backlash is the same at every pose.
+    Poses are interpolated in pose space (``hilcal.machine_time.interpolated_poses``). The last two moves
+    are the approach point (every leg approach_mm shorter than at the target) and the target itself, so each
+    pose is reached with every leg extending: joint backlash is the same at every pose. A repeat (start
+    equal to target) first retreats (every leg repeat_retreat_mm shorter), so it leaves the pose and
+    re-seats the joints like any other visit.
     """
-    start_legs = inverse_kinematics(geom, start_pose)
-    n = max(1, int(np.ceil(np.max(np.abs(inverse_kinematics(geom, target_pose) - start_legs)) / plan.max_step_mm)))
-    while True:
-        poses = start_pose + (target_pose - start_pose) * (np.arange(1, n + 1)[:, None] / n)
-        legs = inverse_kinematics(geom, np.vstack([start_pose, poses]))
-        if np.max(np.abs(np.diff(legs, axis=0))) <= plan.max_step_mm:
-            break
-        n += 1
-    return [*[("transit", p) for p in poses[:-1]], ("approach", target_pose), ("target", target_pose)]
+    start, target = np.asarray(start_pose, dtype=float), np.asarray(target_pose, dtype=float)
+    if np.array_equal(start, target):
+        return [("retreat", target), ("approach", target), ("target", target)]
+    poses = interpolated_poses(geom, start, target, plan.max_step_mm)
+    return [*[("transit", p) for p in poses[:-1]], ("approach", target), ("target", target)]
+
+
+def return_waypoints(geom: Geometry, start_pose: np.ndarray, target_pose: np.ndarray, plan: CalibrationPlan
+                     ) -> list[tuple[str, np.ndarray]]:
+    """Bounded steps to a pose where nothing is measured (home at the end): no approach point."""
+    poses = interpolated_poses(geom, np.asarray(start_pose, dtype=float), np.asarray(target_pose, dtype=float),
+                               plan.max_step_mm)
+    return [*[("transit", p) for p in poses[:-1]], ("target", poses[-1])]

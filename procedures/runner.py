@@ -1,6 +1,9 @@
 """`hilcal run`: the shop-floor runner. Opens the station's devices, runs the calibration procedure under
 the engine with a journal, and writes the recording, the report and the calibration records.
 
+The runner knows no simulator: for a ``--sim`` run the caller (the command line) passes ``RunRequest.sim_station``,
+a context manager that starts the simulated devices and yields the station wired to them.
+
 Exit codes: 0 complete, 2 bad input, 3 device fault, abort or refusal (journal kept, resumable).
 """
 
@@ -13,6 +16,7 @@ import logging
 import os
 import uuid
 from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,12 +25,15 @@ import numpy as np
 import structlog
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from hilcal.machine_time import TimeEstimate
 from hilcal.metrics import AccuracySummary, pose_errors
 from hilcal.recording import write_recording
 from hilcal.robot import Robot, RobotFileError, load_robot
+from hilcal.time_report import time_section
 from procedures.calibration_procedure import (
     AFTER_PHASE,
     PRE_PHASES,
+    TIMED_PHASES,
     ProcedureResult,
     RunOptions,
     calibration_procedure,
@@ -34,9 +41,18 @@ from procedures.calibration_procedure import (
 )
 from procedures.engine import Engine, RunInterrupted
 from procedures.journal import Journal
-from procedures.plan import CalibrationPlan, PlanError, load_plan, make_plan, save_plan
+from procedures.plan import CalibrationPlan, PlanError, estimate_plan, load_plan, make_plan, save_plan
+from procedures.timing import TimingSection
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 2, 3
+
+
+class SimulatorStartError(RuntimeError):
+    """The simulated devices of a ``--sim`` run did not start (raised by a ``SimStation``)."""
+
+
+SimStation = Callable[[str | None, Path, str | None], AbstractContextManager[Any]]
+"""(sim_config, out_dir, robot_path) -> context manager that runs the simulated devices and yields their station."""
 
 
 @dataclass(frozen=True)
@@ -86,14 +102,21 @@ def _summary(rows: list[dict]) -> AccuracySummary:
 
 def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robot: Robot, options: RunOptions,
                      out_dir: Path, run_id: str, confirm: Callable[[str], bool] | None,
-                     started_at: str) -> RunExit:
-    """Run (or continue) the procedure on open devices and write every output; never raises on device faults."""
+                     started_at: str, timing: TimingSection | None = None,
+                     observer: Callable[[str, dict], None] | None = None) -> RunExit:
+    """Run (or continue) the procedure on open devices and write every output; never raises on device faults.
+
+    `timing` (the station's) gives the report its estimated against actual machine time; `observer` receives
+    the engine's events (the operator panel).
+    """
     done = len(journal.measurements((*PRE_PHASES, AFTER_PHASE)))
+    if done:
+        journal.event("resumed", measurements=done)
     total = len(plan.measure_poses) + 2 * len(plan.verify_poses)
     try:
         with _progress(total, done) as advance:
             engine = Engine(devices, journal, confirm=confirm, on_measure=advance,
-                            move_timeout_s=devices.station.motion.move_timeout_s)
+                            move_timeout_s=devices.station.motion.move_timeout_s, observer=observer)
             result: ProcedureResult = engine.run(calibration_procedure(plan, robot, options))
     except RunInterrupted as e:
         journal.set_status("interrupted")
@@ -101,7 +124,8 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
                        f"`hilcal run --resume {run_id} --out {out_dir}`" + (" --sim" if options_sim(journal) else ""))
     pre_rows = journal.measurements(PRE_PHASES)
     write_recording(out_dir / "recording.csv", recording_from_rows(pre_rows, robot))
-    report_path = _write_report(out_dir, run_id, plan, robot, options, result, started_at, journal)
+    machine_time = None if timing is None else machine_time_report(journal, plan, robot, timing)
+    report_path = _write_report(out_dir, run_id, plan, robot, options, result, started_at, journal, machine_time)
     journal.set_status(result.status)
     if result.status != "complete":
         return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} {result.status}: {'; '.join(result.problems)} "
@@ -113,8 +137,21 @@ def options_sim(journal: Journal) -> bool:
     return bool(journal.run_info()["options"].get("sim"))
 
 
+def machine_time_report(journal: Journal, plan: CalibrationPlan, robot: Robot, timing: TimingSection) -> dict:
+    """Estimated time per phase against the journal's phase checkpoints (wall clock)."""
+    actual: dict[str, float | None] = {}
+    for phase in TIMED_PHASES:
+        start = journal.step_time(f"checkpoint:phase_start:{phase}")
+        end = journal.step_time(f"checkpoint:phase_end:{phase}")
+        actual[phase] = end - start if start is not None and end is not None and end >= start else None
+    interrupted = journal.count_events("interrupted", "resumed", "resumed_after_pause") > 0
+    estimate = estimate_plan(plan, robot, timing.timing())
+    return time_section(estimate, actual, {**timing.model_dump(), "settle_s": plan.settle_s}, interrupted=interrupted)
+
+
 def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robot, options: RunOptions,
-                  result: ProcedureResult, started_at: str, journal: Journal) -> Path:
+                  result: ProcedureResult, started_at: str, journal: Journal, machine_time: dict | None = None
+                  ) -> Path:
     from hilcal.run_report import RunReport, write_run_report
 
     verify_rows = journal.measurements(("verify",))
@@ -139,6 +176,7 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
             "uncompensated": None if comp.uncompensated is None else comp.uncompensated.brief(),
         },
         upload=result.upload,
+        machine_time=machine_time,
     )
     json_path, _ = write_run_report(out_dir, report)
     journal.event("report", path=str(json_path))
@@ -184,6 +222,11 @@ class RunRequest:
     seed: int = 0
     records_path: Path | None = None
     operator: str | None = None
+    sim_station: SimStation | None = None
+    timing: TimingSection | None = None
+    """The machine's timing for a --sim run (a real run reads the station file's [timing])."""
+    on_estimate: Callable[[CalibrationPlan, TimeEstimate, TimingSection], None] | None = None
+    """Called with the plan's estimated machine time before anything moves."""
 
 
 def default_records_path() -> Path:
@@ -191,7 +234,7 @@ def default_records_path() -> Path:
     return Path(env) if env else Path.home() / ".local" / "share" / "hilcal" / "records.sqlite"
 
 
-def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None) -> RunExit:
+def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: Any = None) -> RunExit:
     """Start or resume a run in req.out_dir; never raises for bad input or device trouble (see RunExit.code)."""
     from procedures.records import Records
     from procedures.station import (
@@ -199,9 +242,7 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None) -> RunEx
         StationConfigError,
         load_station,
         open_devices,
-        station_from_channels,
     )
-    from sim_devices.launcher import SimStartError, spawn_sim_subprocess, stop_sim_subprocess
 
     req.out_dir.mkdir(parents=True, exist_ok=True)
     configure_logs(req.out_dir)
@@ -210,9 +251,11 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None) -> RunEx
         try:
             if req.resume is None:
                 robot = load_robot(req.robot_path)
+                timing = _station_timing(req)
                 plan = (load_plan(req.plan_path, robot) if req.plan_path else
-                        make_plan(robot, req.seed, settle_s=0.05 if req.sim else 0.5))
+                        make_plan(robot, req.seed, timing=timing.timing()))
                 options = {"sim": req.sim, "estimator": req.estimator, "force": req.force,
+                           "timing": timing.model_dump(),
                            "robot_path": None if req.robot_path is None else str(req.robot_path),
                            "station_path": None if req.station_path is None else str(req.station_path),
                            "sim_config": None if req.sim_config is None else str(req.sim_config)}
@@ -220,17 +263,19 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None) -> RunEx
             else:
                 run_id, plan, options = plan_for_run(journal, None, req.resume, {})
                 robot = load_robot(options["robot_path"])
+                timing = TimingSection.model_validate(options.get("timing", {}))
+            if req.on_estimate is not None:
+                req.on_estimate(plan, estimate_plan(plan, robot, timing.timing()), timing)
             if options["sim"]:
-                proc, channels = spawn_sim_subprocess(options["sim_config"],
-                                                      ["--state-file", str(req.out_dir / "sim_state.json")],
-                                                      log_path=req.out_dir / "sim.log")
-                stack.callback(stop_sim_subprocess, proc)
-                station = station_from_channels(channels, options["robot_path"])
+                if req.sim_station is None:
+                    raise ValueError("this run uses the simulated devices (--sim), but no simulator was given")
+                station = stack.enter_context(req.sim_station(options["sim_config"], req.out_dir,
+                                                              options["robot_path"]))
             else:
                 station = load_station(req.station_path or options["station_path"])
         except (RobotFileError, PlanError, StationConfigError, ValueError) as e:
             return RunExit(EXIT_BAD_INPUT, "", str(e))
-        except SimStartError as e:
+        except SimulatorStartError as e:
             return RunExit(EXIT_INTERRUPTED, "", f"simulated devices did not start: {e}")
         try:
             devices = stack.enter_context(open_devices(station))
@@ -238,15 +283,42 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None) -> RunEx
             return RunExit(EXIT_INTERRUPTED, run_id, f"cannot open the station's devices: {e}; the journal is kept, "
                            f"continue with `hilcal run --resume {run_id} --out {req.out_dir}`")
         run_options = RunOptions(estimator=options["estimator"], force=bool(options["force"]))
+        operator = req.operator
+        if panel is not None:
+            from procedures.panel.control import NotStarted
+
+            panel.run_opened(run_id=run_id, plan=plan, robot=robot, out_dir=req.out_dir, journal=journal,
+                             devices=devices, resumed=req.resume is not None)
+            try:
+                operator = panel.wait_start() or operator
+            except (NotStarted, KeyboardInterrupt):
+                result = RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} not started by the operator; start it "
+                                 f"later with `hilcal run --resume {run_id} --out {req.out_dir}`")
+                panel.finished(code=result.code, message=result.message, status="not started", out_dir=None,
+                               report=None)
+                return result
         with Records(req.records_path or default_records_path()) as records:
             if records.run(run_id) is None:
                 records.record_run(run_id, started_at=started_at, status="running", robot_name=robot.name,
-                                   plan_sha256=plan.sha256(), operator=req.operator, out_dir=str(req.out_dir),
+                                   plan_sha256=plan.sha256(), operator=operator, out_dir=str(req.out_dir),
                                    estimator=run_options.estimator)
             result = run_with_devices(devices, journal, plan, robot, run_options, req.out_dir, run_id, confirm,
-                                      started_at)
-            _record_outcome(records, journal, run_id, req.operator, result)
+                                      started_at, timing, None if panel is None else panel.observer)
+            _record_outcome(records, journal, run_id, operator, result)
+        if panel is not None:
+            report = json.loads(result.report_path.read_text()) if result.report_path is not None else None
+            panel.finished(code=result.code, message=result.message, status=journal.run_info()["status"],
+                           out_dir=req.out_dir, report=report)
         return result
+
+
+def _station_timing(req: RunRequest) -> TimingSection:
+    """The machine's timing: the station file's [timing] (a real run), or what the caller gives (--sim)."""
+    from procedures.station import load_station
+
+    if req.sim:
+        return req.timing or TimingSection()
+    return load_station(req.station_path).timing if req.station_path else TimingSection()
 
 
 def _record_outcome(records: Any, journal: Journal, run_id: str, operator: str | None, result: RunExit) -> None:

@@ -32,6 +32,13 @@ Example::
     [motion]
     move_timeout_s = 120.0
     heartbeat_timeout_s = 0.1
+
+    [timing]                           # procedures.timing.TimingSection: the machine's speed, for estimates
+    leg_speed_mm_s = 50.0
+    leg_accel_mm_s2 = 100.0
+    settle_s = 2.0
+    cmm_s_per_pose = 45.0
+    move_overhead_s = 0.5
 """
 
 from __future__ import annotations
@@ -54,6 +61,7 @@ from drivers.cmm_serial import SerialCmm, SerialCmmConfig
 from drivers.controller_can import ControllerCan
 from drivers.controller_modbus import ControllerParams
 from hilcal.robot import Robot, RobotFileError, load_robot
+from procedures.timing import TimingSection
 
 log = structlog.get_logger(__name__)
 
@@ -148,6 +156,7 @@ class StationConfig(_Strict):
     modbus: ModbusSection
     cmm: CmmSection
     motion: MotionSection = Field(default_factory=MotionSection)
+    timing: TimingSection = Field(default_factory=TimingSection)
     records: Path | None = Field(default=None, description="folder for run records")
     operator: str | None = None
 

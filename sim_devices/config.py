@@ -13,21 +13,31 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 from scipy.spatial.transform import Rotation
 
 from hilcal.robot import Robot, default_robot
+from sim_devices.config_base import Effect as _Effect
+from sim_devices.config_base import PerLeg, per_leg
+from sim_devices.config_base import Strict as _Strict
+from sim_devices.config_base import check_non_negative as _check_non_negative
+from sim_devices.unlisted_config import (
+    PARTLY_LISTED_EFFECT_NAMES,
+    SESSION_EFFECT_NAMES,
+    UNLISTED_EFFECT_NAMES,
+    CyclicStrokeErrorConfig,
+    FrictionHysteresisConfig,
+    HookeJointOffsetConfig,
+    LocalHeatingConfig,
+    TransducerBowConfig,
+    ZeroShiftConfig,
+)
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-PerLeg = float | Annotated[list[float], Field(min_length=6, max_length=6)]
 
 PAPER_ERRORS_FILE = Path(__file__).parent / "data" / "paper_errors.toml"
 BUILTIN_ERROR_SETS = ("table2", "table3", "table4", "table5", "zero")
 PARAMETERS_PER_LEG = 7
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class LegErrors(_Strict):
@@ -113,23 +123,6 @@ def random_cmm_pose(seed: int) -> CmmPose:
     )
 
 
-def per_leg(value: float | list[float]) -> np.ndarray:
-    """(6,) array from a scalar (same for all legs) or a list of six values."""
-    return np.broadcast_to(np.asarray(value, dtype=float), (6,)).copy()
-
-
-class _Effect(_Strict):
-    """A switchable effect: off unless enabled."""
-
-    enabled: bool = False
-
-
-def _check_non_negative(value: float | list[float]) -> float | list[float]:
-    if np.any(per_leg(value) < 0):
-        raise ValueError(f"must be >= 0, got {value}")
-    return value
-
-
 class LegComplianceConfig(_Effect):
     """Structural leg compliance: Δl_i = -c_i F_i, F_i the axial compression (kN) from the platform statics."""
 
@@ -178,20 +171,33 @@ class OilColumnComplianceConfig(_Effect):
 
 
 EFFECT_NAMES = ("leg_compliance", "sensor_scale", "thermal_expansion", "joint_backlash", "oil_column_compliance")
+"""The effects that the calibration tool's diagnosis has candidates for (its library)."""
+
+ALL_EFFECT_NAMES = (*EFFECT_NAMES, *UNLISTED_EFFECT_NAMES, *PARTLY_LISTED_EFFECT_NAMES, *SESSION_EFFECT_NAMES)
 
 
 class EffectsConfig(_Strict):
-    """The non-geometric truth physics of the rig; every effect is off by default."""
+    """The non-geometric truth physics of the rig; every effect is off by default.
+
+    The first five are the diagnosis library's effects; the out-of-library and session effects are configured
+    in sim_devices.unlisted_config. Any combination may be enabled: the rig adds their Δl.
+    """
 
     leg_compliance: LegComplianceConfig = Field(default_factory=LegComplianceConfig)
     sensor_scale: SensorScaleConfig = Field(default_factory=SensorScaleConfig)
     thermal_expansion: ThermalExpansionConfig = Field(default_factory=ThermalExpansionConfig)
     joint_backlash: JointBacklashConfig = Field(default_factory=JointBacklashConfig)
     oil_column_compliance: OilColumnComplianceConfig = Field(default_factory=OilColumnComplianceConfig)
+    transducer_bow: TransducerBowConfig = Field(default_factory=TransducerBowConfig)
+    cyclic_stroke_error: CyclicStrokeErrorConfig = Field(default_factory=CyclicStrokeErrorConfig)
+    hooke_joint_offset: HookeJointOffsetConfig = Field(default_factory=HookeJointOffsetConfig)
+    local_heating: LocalHeatingConfig = Field(default_factory=LocalHeatingConfig)
+    friction_hysteresis: FrictionHysteresisConfig = Field(default_factory=FrictionHysteresisConfig)
+    zero_shift: ZeroShiftConfig = Field(default_factory=ZeroShiftConfig)
 
     def active(self) -> tuple[str, ...]:
-        """Names of the enabled effects, in EFFECT_NAMES order."""
-        return tuple(name for name in EFFECT_NAMES if getattr(self, name).enabled)
+        """Names of the enabled effects, in ALL_EFFECT_NAMES order (library, out-of-library, session)."""
+        return tuple(name for name in ALL_EFFECT_NAMES if getattr(self, name).enabled)
 
 
 # Scale-1 magnitudes of concealed_effect_config (see its docstring for the resulting leg-length signatures).

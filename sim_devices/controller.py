@@ -7,8 +7,8 @@ and reports s + l0_ctrl. Uploading compensated offsets therefore changes what th
 reports while the physics stays in ``rig.py``. Time is real time multiplied by ``time_scale`` and the model
 advances lazily on every access, so it needs no thread of its own. All public methods are thread-safe.
 
-The CAN and Modbus personalities live in ``slcan_server.py`` and ``modbus_server.py``;
-``start_controller_servers`` wires all three together for the ``hilcal sim`` launcher.
+This module knows no transport: ``can_peer.py`` + ``slcan_server.py`` / ``can_bus_server.py`` adapt it to CAN,
+``modbus_protocol.py`` + ``modbus_server.py`` to Modbus, and ``controller_servers.py`` composes them.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import numpy as np
 import structlog
@@ -46,10 +46,6 @@ from hilcal.protocols.registers import (
 )
 from hilcal.robot import Robot
 from sim_devices.rig import SimulatedRig
-
-if TYPE_CHECKING:
-    from sim_devices.modbus_server import ModbusRtuServer, ModbusTcpServer
-    from sim_devices.slcan_server import SlcanServer
 
 log = structlog.get_logger(__name__)
 
@@ -474,70 +470,3 @@ class SimulatedController:
         b.staged_crc_words = [0, 0]
         log.info("parameters_committed", crc32=hex(crc32_of_words(words_from_floats(values.tolist()))))
         return ParamStatus.OK
-
-
-@dataclass
-class ControllerServers:
-    """The running simulated controller with its SLCAN and Modbus TCP servers."""
-
-    controller: SimulatedController
-    slcan: SlcanServer
-    modbus: ModbusTcpServer
-    modbus_rtu: ModbusRtuServer | None = None
-
-    @property
-    def slcan_path(self) -> str:
-        """Channel for ``can.Bus(interface="slcan", channel=..., sleep_after_open=0)``."""
-        return self.slcan.channel
-
-    @property
-    def modbus_port(self) -> int:
-        return self.modbus.port
-
-    @property
-    def modbus_rtu_path(self) -> str | None:
-        """pty of the Modbus RTU server (``modbus_rtu=True`` in the config), else None."""
-        return self.modbus_rtu.path if self.modbus_rtu is not None else None
-
-    def close(self) -> None:
-        """Stop every server (idempotent)."""
-        self.slcan.close()
-        self.modbus.close()
-        if self.modbus_rtu is not None:
-            self.modbus_rtu.close()
-
-    def __enter__(self) -> ControllerServers:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-def serve_controller(controller: SimulatedController) -> ControllerServers:
-    """Serve a controller model on SLCAN (pty or TCP), Modbus TCP (127.0.0.1) and optionally Modbus RTU (pty)."""
-    from sim_devices.modbus_server import ModbusRtuServer, ModbusTcpServer
-    from sim_devices.slcan_server import ControllerCanPeer, SlcanServer
-
-    cfg = controller.config
-    slcan = SlcanServer(ControllerCanPeer(controller), transport=cfg.slcan_transport).start()
-    servers = ControllerServers(controller, slcan, ModbusTcpServer(controller, port=cfg.modbus_port))
-    try:
-        servers.modbus.start()
-        if cfg.modbus_rtu:
-            servers.modbus_rtu = ModbusRtuServer(controller, faults=servers.modbus.faults).start()
-    except BaseException:
-        servers.close()
-        raise
-    log.info("controller_servers_started", slcan=slcan.channel, modbus_port=servers.modbus_port,
-             modbus_rtu=servers.modbus_rtu_path)
-    return servers
-
-
-def start_controller_servers(
-    robot: Robot, rig: SimulatedRig, config: ControllerSimConfig | None = None
-) -> ControllerServers:
-    """Start a simulated controller and serve it (see `serve_controller`); ``close()`` stops every server.
-
-    Fault injection starts as the config says.
-    """
-    return serve_controller(SimulatedController(robot, rig, config or ControllerSimConfig()))

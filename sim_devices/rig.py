@@ -6,9 +6,10 @@ simulation cannot agree with the fitting code merely because both share a formul
 
 Truth model, per leg i: true platform joint a_i + da_i, true base joint b_i + db_i, and true joint-centre
 distance = reported length + dl0_i + the corrections of the enabled non-geometric effects (sim_devices.physics),
-which may depend on the pose (through the leg loads), the leg temperature and the motion history. Reported
-lengths are multiples of the leg resolution. The rig keeps a simulated clock that drives a drifting
-temperature, read by a noisy temperature sensor.
+which may depend on the pose (through the leg loads and directions), the leg temperature, the motion history and
+the time since the session started (sim_devices.physics for the library effects, sim_devices.unlisted_physics for
+the out-of-library and session effects). Reported lengths are multiples of the leg resolution. The rig keeps a
+simulated clock that drives a drifting temperature, read by a noisy temperature sensor.
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from hilcal.robot import Robot
-from sim_devices import physics
+from sim_devices import physics, unlisted_physics
 from sim_devices.config import RigConfig
+from sim_devices.unlisted_config import TIME_DEPENDENT_EFFECTS
 
 FK_TOLERANCE_MM = 1e-9
 POSE_CONVERGENCE_MM = 1e-9
@@ -58,7 +60,16 @@ class SimulatedRig:
         self._pose_cache: np.ndarray | None = None
         self._active_effects = config.effects.active()
         self._direction = np.ones(6)
+        self._last_move_mm = np.full(6, np.inf)
         self._time_s = 0.0
+        self._session_start_s = 0.0
+        self._stroke_range_mm = (robot.leg_limits[0] - robot.l0, robot.leg_limits[1] - robot.l0)
+        home_legs = physics.platform_joints_mm(self._last_rotation.as_matrix(), self._last_translation, self.a_true)
+        home_legs = home_legs - self.b_true
+        self._first_axes = unlisted_physics.hooke_first_axes(
+            home_legs / np.linalg.norm(home_legs, axis=1, keepdims=True),
+            config.effects.hooke_joint_offset.axis_angle_deg,
+        )
         self._temperature_rng = np.random.default_rng([config.seed, 0x7E5])
 
     # ------------------------------------------------------------------ controller side
@@ -88,6 +99,7 @@ class SimulatedRig:
                 raise ValueError(f"leg {i + 1}: {value} mm is outside the leg limits [{lo}, {hi}] mm")
         quantized = self._quantize(L)
         self._direction = physics.motion_direction(self._direction, quantized - self._reported)
+        self._last_move_mm = unlisted_physics.last_move_size_mm(self._last_move_mm, quantized - self._reported)
         self._reported = quantized
         self._pose_cache = None
 
@@ -98,6 +110,10 @@ class SimulatedRig:
     def motion_direction(self) -> np.ndarray:
         """(6,) direction of the last motion of each leg: +1 extended, -1 retracted (initially +1)."""
         return self._direction.copy()
+
+    def last_move_mm(self) -> np.ndarray:
+        """(6,) size of the last move of each leg, mm (initially inf: as after a long move)."""
+        return self._last_move_mm.copy()
 
     # ------------------------------------------------------------------ clock and temperature
 
@@ -117,8 +133,19 @@ class SimulatedRig:
         if not np.isfinite(t_s) or t_s < 0:
             raise ValueError(f"t_s must be finite and >= 0, got {t_s}")
         self._time_s = float(t_s)
-        if "thermal_expansion" in self._active_effects:
+        if TIME_DEPENDENT_EFFECTS.intersection(self._active_effects):
             self._pose_cache = None
+
+    def start_session(self) -> None:
+        """Power-on now: the time-since-power-on of the local heating restarts (the legs cooled in between)."""
+        self._session_start_s = self._time_s
+        if "local_heating" in self._active_effects:
+            self._pose_cache = None
+
+    @property
+    def session_start_s(self) -> float:
+        """Clock time (s) at which the current session started (0 until start_session is called)."""
+        return self._session_start_s
 
     def true_temperature_c(self) -> float:
         """True leg temperature (°C) now."""
@@ -172,31 +199,49 @@ class SimulatedRig:
         return Rotation.from_rotvec(sol.x[:3]) * start_rotation, sol.x[3:].copy()
 
     def _corrections_at(
-        self, reported_mm: np.ndarray, rotation: Rotation, t_mm: np.ndarray, direction: np.ndarray, temperature_c: float
+        self, reported_mm: np.ndarray, rotation: Rotation, t_mm: np.ndarray, history: tuple[np.ndarray, np.ndarray]
     ) -> dict[str, np.ndarray]:
-        """Δl (mm) of each enabled effect with the platform at (rotation, t_mm)."""
+        """Δl (mm) of each enabled effect with the platform at (rotation, t_mm), at the rig's current time.
+
+        history = (direction, last move size) of each leg.
+        """
         R = rotation.as_matrix()
         joints = physics.platform_joints_mm(R, t_mm, self.a_true)
         forces = physics.axial_leg_forces_kn(
             R, t_mm, self.a_true, self.b_true, self.robot.moving_mass_kg, self.robot.com, self.robot.gravity_mps2
         )
-        return physics.length_corrections_mm(
-            self.config.effects,
+        leg_lengths = np.linalg.norm(joints - self.b_true, axis=1)
+        effects = self.config.effects
+        out = physics.length_corrections_mm(
+            effects,
             reported_mm=reported_mm,
             l0_mm=self.robot.l0,
-            leg_lengths_mm=np.linalg.norm(joints - self.b_true, axis=1),
+            leg_lengths_mm=leg_lengths,
             forces_kn=forces,
-            temperature_c=temperature_c,
-            direction=direction,
+            temperature_c=self.true_temperature_c(),
+            direction=history[0],
         )
+        state = unlisted_physics.LegState(
+            stroke_mm=physics.true_stroke_mm(reported_mm, self.robot.l0, effects),
+            stroke_min_mm=self._stroke_range_mm[0],
+            stroke_max_mm=self._stroke_range_mm[1],
+            base_joints_mm=self.b_true,
+            platform_joints_mm=joints,
+            first_axes=self._first_axes,
+            time_s=self._time_s,
+            session_time_s=self._time_s - self._session_start_s,
+            direction=history[0],
+            last_move_mm=history[1],
+        )
+        out.update(unlisted_physics.unlisted_corrections_mm(effects, state, leg_lengths))
+        return out
 
     def _solve_pose(
         self,
         reported_mm: np.ndarray,
         start_rotation: Rotation,
         start_t_mm: np.ndarray,
-        direction: np.ndarray,
-        temperature_c: float,
+        history: tuple[np.ndarray, np.ndarray],
     ) -> tuple[Rotation, np.ndarray]:
         """True pose with every enabled effect: fixed-point iteration of FK on the corrected lengths.
 
@@ -208,7 +253,7 @@ class SimulatedRig:
         if not self._active_effects:
             return rotation, t
         for _ in range(MAX_EFFECT_ITERATIONS):
-            corrections = self._corrections_at(reported_mm, rotation, t, direction, temperature_c)
+            corrections = self._corrections_at(reported_mm, rotation, t, history)
             new_rotation, new_t = self._solve_fk(reported_mm, rotation, t, np.sum(list(corrections.values()), axis=0))
             moved = physics.platform_joints_mm(new_rotation.as_matrix(), new_t, self.a_true) - (
                 physics.platform_joints_mm(rotation.as_matrix(), t, self.a_true)
@@ -224,7 +269,7 @@ class SimulatedRig:
     def _fk_warm(self, reported_mm: np.ndarray) -> np.ndarray:
         """Solve the true pose starting from the previous solution and remember this one as the next start."""
         rotation, t = self._solve_pose(
-            reported_mm, self._last_rotation, self._last_translation, self._direction, self.true_temperature_c()
+            reported_mm, self._last_rotation, self._last_translation, (self._direction, self._last_move_mm)
         )
         self._last_rotation, self._last_translation = rotation, t
         return _pose_from_rotation(rotation, t)
@@ -238,20 +283,20 @@ class SimulatedRig:
     def true_poses_for_lengths(self, reported_mm: np.ndarray) -> np.ndarray:
         """Actual poses (N, 6) for reported lengths (N, 6) visited in order; does not move the rig.
 
-        With effects, the sequence starts from the rig's current lengths and motion directions, at the
-        current temperature (the clock does not advance).
+        With effects, the sequence starts from the rig's current lengths and motion history, at the current
+        time and temperature (the clock does not advance).
         """
         L = np.asarray(reported_mm, dtype=float)
         if L.ndim != 2 or L.shape[1] != 6:
             raise ValueError(f"leg lengths must have shape (N, 6), got {L.shape}")
         rotation, t = _rotation_from_pose(self.robot.home), self.robot.home[:3]
-        previous, direction = self._reported, self._direction
-        temperature = self.true_temperature_c()
+        previous, direction, move = self._reported, self._direction, self._last_move_mm
         out = np.empty_like(L)
         for k, lengths in enumerate(L):
             direction = physics.motion_direction(direction, lengths - previous)
+            move = unlisted_physics.last_move_size_mm(move, lengths - previous)
             previous = lengths
-            rotation, t = self._solve_pose(lengths, rotation, t, direction, temperature)
+            rotation, t = self._solve_pose(lengths, rotation, t, (direction, move))
             out[k] = _pose_from_rotation(rotation, t)
         return out
 
@@ -269,10 +314,10 @@ class SimulatedRig:
         )
 
     def length_corrections_mm(self) -> dict[str, np.ndarray]:
-        """Δl (mm, (6,)) of each enabled effect at the true pose, the current temperature and motion history."""
+        """Δl (mm, (6,)) of each enabled effect at the true pose, the current time and motion history."""
         pose = self.true_pose()
         return self._corrections_at(
-            self._reported, _rotation_from_pose(pose), pose[:3], self._direction, self.true_temperature_c()
+            self._reported, _rotation_from_pose(pose), pose[:3], (self._direction, self._last_move_mm)
         )
 
     # ------------------------------------------------------------------ CMM

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 import structlog
@@ -37,3 +39,11 @@ def feasible_random_poses(robot: Robot, n: int, rng: np.random.Generator) -> np.
         L = inverse_kinematics(Geometry.nominal(robot), q)
         out = np.concatenate([out, q[((L > lo) & (L < hi)).all(axis=1)]])
     return out[:n]
+
+
+def pytest_terminal_summary(terminalreporter) -> None:
+    """Figures the tests measure but do not assert: the panel's live-update latency in a real browser."""
+    support = sys.modules.get("tests.browser_support")
+    line = support.latency_report() if support is not None else None
+    if line:
+        terminalreporter.write_line(line)

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from hilcal.cli import app
+from procedures.cli.app import app
 
 runner = CliRunner()
 KEYS = {"max_position_mm", "rms_position_mm", "max_orientation_deg", "rms_orientation_deg"}

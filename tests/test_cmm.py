@@ -30,7 +30,8 @@ from drivers.cmm_base import (
 )
 from drivers.cmm_serial import SerialCmm, SerialCmmConfig
 from hilcal.robot import Robot, default_robot
-from sim_devices.cmm_server import CmmServerConfig, CmmServerHandle, Fault, start_cmm_server
+from sim_devices.cmm_config import CmmServerConfig, Fault
+from sim_devices.cmm_server import CmmServerHandle, start_cmm_server
 from sim_devices.config import RigConfig, load_errors
 from sim_devices.rig import SimulatedRig
 

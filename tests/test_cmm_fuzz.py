@@ -28,18 +28,11 @@ from drivers.cmm_serial import (
 )
 from hilcal.protocols.cmm import Marker
 from hilcal.robot import default_robot
-from sim_devices.cmm_server import (
-    CmmServerConfig,
-    CmmServerHandle,
-    CommandRejected,
-    FaultInjector,
-    FaultRates,
-    ParsedCommand,
-    _Machine,
-    _Session,
-    parse_command_line,
-    start_cmm_server,
-)
+from sim_devices.cmm_commands import CommandRejected, ParsedCommand, parse_command_line
+from sim_devices.cmm_config import CmmServerConfig, FaultRates
+from sim_devices.cmm_faults import FaultInjector
+from sim_devices.cmm_server import CmmServerHandle, start_cmm_server
+from sim_devices.cmm_session import CmmMachine, CmmSession
 from sim_devices.config import RigConfig, load_errors
 from sim_devices.rig import SimulatedRig
 
@@ -122,7 +115,7 @@ def test_server_session_answers_every_line_with_valid_responses(rig: SimulatedRi
     """The simulator's session on random lines: no exception, and every output line is a valid response."""
     config = CmmServerConfig(time_scale=0.0)
     out: list[bytes] = []
-    session = _Session(_Machine(ROBOT, rig, config), FaultInjector(FaultRates(), 0), out.append, lambda _s: False)
+    session = CmmSession(CmmMachine(ROBOT, rig, config), FaultInjector(FaultRates(), 0), out.append, lambda _s: False)
     for raw in [b"00001 StartSession()", b"00002 Home()", *batch]:
         session.handle_line(raw)
     text = b"".join(out)

@@ -14,7 +14,7 @@ from hilcal.calibration import calibrate
 from hilcal.kinematics import Geometry, forward_kinematics
 from hilcal.metrics import AccuracySummary
 from hilcal.recording import write_recording
-from procedures.simulated_recording import simulate_recording
+from procedures.cli.simulated_recording import simulate_recording
 from sim_devices.config import RigConfig, load_errors
 
 

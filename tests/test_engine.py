@@ -14,7 +14,8 @@ from procedures import messages as m
 from procedures.engine import Engine, RunInterrupted
 from procedures.journal import Journal
 from procedures.station import open_devices, station_from_channels
-from sim_devices.launcher import SimConfig, SimControllerConfig, start_sim
+from sim_devices.sim_config import SimConfig, SimControllerConfig
+from sim_devices.simulator import start_sim
 
 
 @pytest.fixture

@@ -27,34 +27,26 @@ from hilcal.protocols.registers import (
     parameter_limit_violations,
 )
 from hilcal.robot import Robot
+from sim_devices.can_peer import CanCodec, CanFrameError, ControllerCanPeer
 from sim_devices.config import GeometryErrors, RigConfig
 from sim_devices.controller import ControllerSimConfig, SimulatedController
-from sim_devices.modbus_server import (
-    ControllerRegisterMap,
+from sim_devices.modbus_faults import ModbusFaultInjector
+from sim_devices.modbus_frames import (
     MbapHeader,
     ModbusError,
-    ModbusFaultInjector,
     ModbusFrameError,
-    ModbusProtocol,
     ModbusRequest,
-    ModbusTcpServer,
     decode_request_pdu,
     parse_mbap,
     rtu_frame,
     rtu_request_length,
     rtu_split,
 )
+from sim_devices.modbus_protocol import ControllerRegisterMap, ModbusProtocol
+from sim_devices.modbus_server import ModbusTcpServer
 from sim_devices.rig import SimulatedRig
-from sim_devices.slcan_server import (
-    CanCodec,
-    CanFrameError,
-    ControllerCanPeer,
-    SlcanCommand,
-    SlcanError,
-    SlcanLineSplitter,
-    SlcanServer,
-    parse_slcan_line,
-)
+from sim_devices.slcan_protocol import SlcanCommand, SlcanError, SlcanLineSplitter, parse_slcan_line
+from sim_devices.slcan_server import SlcanServer
 
 pytestmark = pytest.mark.timeout(120)
 FUZZ = settings(deadline=None, max_examples=200, suppress_health_check=[HealthCheck.function_scoped_fixture])

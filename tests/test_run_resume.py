@@ -52,7 +52,7 @@ def _live_set(state_file: Path) -> np.ndarray | None:
 def _start(out: Path, tmp: Path, run_id: str | None) -> subprocess.Popen[bytes]:
     args = ["--resume", run_id] if run_id else ["--sim", "--sim-config", str(tmp / "sim.toml")]
     env = {**os.environ, "HILCAL_RECORDS": str(tmp / "records.sqlite")}
-    return subprocess.Popen([sys.executable, "-m", "hilcal.cli", "run", "--yes", "--out", str(out), *args],
+    return subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", "--yes", "--out", str(out), *args],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
 
 
@@ -62,13 +62,14 @@ def test_sigkill_at_seeded_points_then_resume(tmp_path):
     (tmp_path / "sim.toml").write_text(SIM_CONFIG)
     out = tmp_path / "run"
     journal = out / "journal.sqlite"
-    total = 32 + 24 + 24
+    pre = 35 + 24  # 32 measure poses, one measured 4 times, and 24 verify poses; then 24 again after the upload
+    total = pre + 24
     # Kill points: after k measurements plus a random delay, spread over all three phases, and inside the upload.
     kill_after = sorted(rng.choice(np.arange(1, total), size=18, replace=False).tolist())
     plan = [("startup", 0, rng.uniform(0.5, 2.0))]
-    plan += [("measurements", k, rng.uniform(0.0, 0.4)) for k in kill_after if k < 56]
-    plan += [("upload", 56, rng.uniform(0.0, 0.05)), ("upload", 56, rng.uniform(0.05, 0.3))]
-    plan += [("measurements", k, rng.uniform(0.0, 0.4)) for k in kill_after if k >= 56]
+    plan += [("measurements", k, rng.uniform(0.0, 0.4)) for k in kill_after if k < pre]
+    plan += [("upload", pre, rng.uniform(0.0, 0.05)), ("upload", pre, rng.uniform(0.05, 0.3))]
+    plan += [("measurements", k, rng.uniform(0.0, 0.4)) for k in kill_after if k >= pre]
     assert len(plan) >= 21
 
     robot = default_robot()
@@ -108,6 +109,9 @@ def test_sigkill_at_seeded_points_then_resume(tmp_path):
     assert counts == sorted(counts), "no measurement is ever lost"
     report = json.loads((out / "report.json").read_text())
     assert report["status"] == "complete" and report["uploaded"] is True
+    times = report["machine_time"]
+    assert times["interrupted"] is True and times["estimated_s"] > 0
+    assert all(times["phases"][p]["actual_s"] is not None for p in ("measure", "verify", "verify_after"))
     assert report["verification"]["after"]["max_position_mm"] <= 0.05
     uploaded = report["compensation"]["uploaded_parameters"]
     new = np.concatenate([np.ravel(uploaded["a_mm"]), np.ravel(uploaded["b_mm"]), uploaded["l0_mm"]])

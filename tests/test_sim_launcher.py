@@ -26,17 +26,11 @@ from hilcal.kinematics import Geometry, inverse_kinematics
 from hilcal.protocols.controller_states import ControllerState
 from hilcal.robot import default_robot
 from sim_devices.config import RigConfig, load_errors
-from sim_devices.launcher import (
-    SimConfig,
-    SimConfigError,
-    SimStartError,
-    SimStateError,
-    load_sim_config,
-    spawn_sim_subprocess,
-    start_sim,
-    stop_sim_subprocess,
-)
+from sim_devices.launcher import SimStartError, spawn_sim_subprocess, stop_sim_subprocess
 from sim_devices.rig import SimulatedRig
+from sim_devices.sim_config import SimConfig, SimConfigError, load_sim_config
+from sim_devices.sim_state import SimStateError
+from sim_devices.simulator import start_sim
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import kurtosis
 
 from hilcal.robot import default_robot, rotation_matrix
-from procedures.simulated_recording import simulate_recording
+from procedures.cli.simulated_recording import simulate_recording
 from sim_devices.config import (
     EFFECT_NAMES,
     CmmPose,

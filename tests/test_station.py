@@ -22,7 +22,9 @@ from procedures.station import (
     station_from_dict,
     station_to_toml,
 )
-from sim_devices.launcher import SimConfig, SimHandle, start_sim
+from procedures.timing import TimingFileError, TimingSection, load_timing
+from sim_devices.sim_config import SimConfig
+from sim_devices.simulator import SimHandle, start_sim
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -45,6 +47,7 @@ def full_station(**overrides: object) -> StationConfig:
             "probing": {"n_ring": 8, "elevations_deg": [20.0, 45.0]},
         },
         "motion": {"move_timeout_s": 90.0, "connect_timeout_s": 2.0},
+        "timing": {"leg_speed_mm_s": 30.0, "leg_accel_mm_s2": 60.0, "settle_s": 3.0, "cmm_s_per_pose": 50.0},
     }
     data.update(overrides)
     return station_from_dict(data)
@@ -115,6 +118,8 @@ def test_minimal_file_defaults_and_relative_paths(tmp_path: Path) -> None:
         (MINIMAL.replace("[100.0, 200.0, 300.0, 0.0, 0.0, 45.0]", "[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], "
                          "[0, 0, 1, 1]]"), r"last row"),
         (MINIMAL.replace("[modbus]", "[modbus]\nport = 70000"), r"modbus\.port"),
+        (MINIMAL + "[timing]\nleg_speed_mm_s = 0.0\n", r"timing\.leg_speed_mm_s: Input should be greater than 0"),
+        (MINIMAL + "[timing]\nleg_speed = 10.0\n", r"timing\.leg_speed: Extra inputs"),
     ],
 )
 def test_bad_files_give_clear_errors(tmp_path: Path, text: str, message: str) -> None:
@@ -122,6 +127,17 @@ def test_bad_files_give_clear_errors(tmp_path: Path, text: str, message: str) ->
     with pytest.raises(StationConfigError, match=message) as info:
         load_station(path)
     assert str(path) in str(info.value)
+
+
+def test_timing_section_alone_for_simulated_runs(tmp_path: Path) -> None:
+    assert load_station(write(tmp_path, MINIMAL)).timing == TimingSection()
+    timing = load_timing(write(tmp_path, "[timing]\nleg_speed_mm_s = 12.5\ncmm_s_per_pose = 30.0\n"))
+    assert (timing.leg_speed_mm_s, timing.cmm_s_per_pose, timing.settle_s) == (12.5, 30.0, TimingSection().settle_s)
+    assert timing.timing().leg_speed_mm_s == 12.5 and timing.timing(settle_s=0.1).settle_s == 0.1
+    with pytest.raises(TimingFileError, match=r"timing\.settle_s"):
+        load_timing(write(tmp_path, "[timing]\nsettle_s = -1.0\n"))
+    with pytest.raises(TimingFileError, match="cannot read"):
+        load_timing(tmp_path / "nope.toml")
 
 
 def test_missing_file(tmp_path: Path) -> None:

@@ -1,0 +1,5 @@
+"""``python -m procedures.cli``: the `hilcal` command line."""
+
+from procedures.cli.app import app
+
+app()

@@ -1,0 +1,208 @@
+"""Commands for the engineer analysing data: identify, diagnose, identifiability, design, simulate."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+from rich.table import Table
+
+from hilcal.calibration import CalibrationOutcome, calibrate
+from hilcal.identification import IdentificationError
+from hilcal.kinematics import KinematicsError
+from hilcal.recording import RecordingError, read_recording
+from hilcal.robot import Robot
+from procedures.cli.common import (
+    EstimatorChoice,
+    ModelChoice,
+    RobotOption,
+    accuracy_table,
+    fail,
+    out,
+    robot_or_fail,
+    write_simulated_recording,
+)
+
+
+def _parameter_table(outcome: CalibrationOutcome) -> Table:
+    ident = outcome.identification
+    table = Table(title=f"Identified errors ({ident.model}-parameter model, {ident.estimator}, {ident.formulation})")
+    table.add_column("parameter")
+    table.add_column("value", justify="right")
+    table.add_column("std error", justify="right")
+    std = ident.std_errors if ident.std_errors is not None else [None] * len(ident.names)
+    for name, value, s in zip(ident.names, ident.x, std, strict=True):
+        table.add_row(name, f"{value:+.4f}", "" if s is None else f"{s:.4f}")
+    return table
+
+
+def identify(
+    recording: Annotated[Path, typer.Argument(help="recording CSV")],
+    robot: RobotOption = None,
+    estimator: Annotated[EstimatorChoice, typer.Option(help="least squares or L-infinity (minimax)")] = (
+        EstimatorChoice.ls
+    ),
+    model: Annotated[ModelChoice, typer.Option(help="42 rigid parameters, or the paper's 60 (linear)")] = (
+        ModelChoice.m42
+    ),
+    formulation: Annotated[str, typer.Option(help="forward (pose error) or implicit (leg-length error)")] = "forward",
+    method: Annotated[str, typer.Option(help="iterated (nonlinear) or one_step (paper's linearization)")] = "",
+    as_json: Annotated[bool, typer.Option("--json", help="print one JSON object")] = False,
+) -> None:
+    """Identify geometric errors on the `measure` rows; report accuracy on the `verify` rows."""
+    rb = robot_or_fail(robot)
+    n_params = 60 if model == ModelChoice.m60 else 42
+    chosen_method = method or ("one_step" if model == ModelChoice.m60 else "iterated")
+    try:
+        rec = read_recording(recording, rb, min_measure_rows=n_params // 6 + 1)
+        outcome = calibrate(rec, rb, estimator=estimator.value, model=model.value, formulation=formulation,
+                            method=chosen_method)
+    except (RecordingError, IdentificationError, KinematicsError) as e:
+        fail(str(e))
+    if as_json:
+        print(json.dumps(outcome.to_json(), indent=2))
+        return
+    out.print(_parameter_table(outcome))
+    out.print(accuracy_table(
+        f"{recording.name}: {outcome.n_measure} measure rows, {outcome.n_verify} verify rows",
+        [("before", outcome.before), (f"after {estimator.value}", outcome.after)],
+    ))
+    ident = outcome.identification
+    out.print(f"fit: max |residual| {ident.max_abs_residual:.4f} mm, RMS {ident.rms_residual:.4f} mm, "
+              f"{ident.n_iterations} evaluations, converged={ident.converged}")
+
+
+def diagnose(
+    recording: Annotated[Path, typer.Argument(help="recording CSV (real or simulated)")],
+    robot: RobotOption = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print one JSON object")] = False,
+    report: Annotated[Path | None, typer.Option("--report", help="write plots, tables and an HTML page here")] = None,
+    cmm_sigma_mm: Annotated[float | None, typer.Option(
+        "--cmm-sigma-mm", help="CMM sphere-centre uncertainty (mm, 1 sigma per coordinate): the noise yardstick",
+    )] = None,
+    alpha: Annotated[float, typer.Option(help="false-alarm rate on a recording without missing physics")] = 0.02,
+    seed: Annotated[int, typer.Option(help="seed of the bootstrap")] = 0,
+) -> None:
+    """Find the physics the geometric model leaves out: locate, name, model it, show the fit improve."""
+    from hilcal.diagnosis import diagnose as run_diagnosis
+
+    if not 0 < alpha < 1:
+        fail("--alpha must lie in (0, 1)")
+    if cmm_sigma_mm is not None and not cmm_sigma_mm > 0:
+        fail("--cmm-sigma-mm must be a positive length in mm")
+    rb = robot_or_fail(robot)
+    try:
+        rec = read_recording(recording, rb)
+        diag = run_diagnosis(rec, rb, alpha=alpha, seed=seed, cmm_sigma_mm=cmm_sigma_mm)
+    except (RecordingError, IdentificationError, KinematicsError) as e:
+        fail(str(e))
+    page = None
+    if report is not None:
+        from hilcal.diagnosis_report import write_report
+
+        page = write_report(diag, report)
+    if as_json:
+        print(json.dumps(diag.to_json(), indent=2))
+        return
+    out.print(f"[bold]effect:[/] {diag.effect}   [bold]effects:[/] {', '.join(diag.effects) or 'none'}")
+    out.print(diag.explanation, highlight=False)
+    if diag.steps:
+        table = Table(title="selection steps")
+        for col in ("step", "group", "F", "p", "CV µm", "verify RMS mm", "removed"):
+            table.add_column(col, justify="left" if col in ("group", "removed") else "right")
+        for s in diag.steps:
+            table.add_row(str(s.index), s.key, f"{s.f_statistic:.1f}", f"{s.p_value:.3g}", f"{s.cv_rms_mm * 1000:.2f}",
+                          "" if s.verify is None else f"{s.verify.position_mm.rms:.4f}", ", ".join(s.removed))
+        out.print(table)
+    out.print(accuracy_table("verify poses (held out)", [("geometry only", diag.before), ("final model", diag.after)]))
+    for finding in diag.findings[:5]:
+        out.print(f"  - {finding.text}", highlight=False)
+    if page is not None:
+        out.print(f"report: {page}")
+
+
+def _pose_set(rb: Robot, recording: Path | None, design_name: str, seed: int) -> np.ndarray:
+    from hilcal import design
+
+    if recording is not None:
+        try:
+            return read_recording(recording, rb, min_measure_rows=1).select("measure").meas
+        except RecordingError as e:
+            fail(str(e))
+    sets = design.paper_pose_sets(rb, seed)
+    if design_name not in sets:
+        fail(f"unknown pose set {design_name!r}: choose one of {', '.join(sets)}")
+    return sets[design_name].poses
+
+
+def identifiability(
+    model: Annotated[ModelChoice, typer.Option(help="42 rigid parameters or the paper's 60")] = ModelChoice.m42,
+    robot: RobotOption = None,
+    recording: Annotated[Path | None, typer.Option(help="use this recording's measure poses")] = None,
+    pose_set: Annotated[str, typer.Option(help="or one of the paper's four pose sets")] = "set3_factorial_exchange32",
+    seed: int = 0,
+) -> None:
+    """Rank, condition number and unidentifiable directions of an error model over a pose set."""
+    from hilcal.identifiability import format_report
+    from hilcal.identifiability import identifiability as analyse
+
+    rb = robot_or_fail(robot)
+    poses = _pose_set(rb, recording, pose_set, seed)
+    out.print(format_report(analyse(rb, poses, model.value)), highlight=False)
+
+
+def design(
+    robot: RobotOption = None,
+    seed: int = 0,
+    out_csv: Annotated[Path | None, typer.Option("--out", help="write the chosen pose set as CSV")] = None,
+    pose_set: Annotated[str, typer.Option(help="pose set written by --out")] = "set3_factorial_exchange32",
+    station: Annotated[Path | None, typer.Option(help="station TOML: its [timing] gives the machine's speed")] = None,
+    max_minutes: Annotated[float | None, typer.Option("--max-minutes", help="time budget of the whole run")] = None,
+    noise_mm: Annotated[float, typer.Option("--noise-mm", help="pose noise per component for the predicted "
+                                            "verify error, mm")] = 0.005,
+    plan_out: Annotated[Path | None, typer.Option("--plan-out", help="write the calibration plan (JSON) for "
+                                                  "`hilcal run --plan`")] = None,
+    n_verify: Annotated[int, typer.Option("--n-verify", help="verification poses of the plan")] = 24,
+) -> None:
+    """D-optimal measurement poses (the paper's four pose sets), the calibration plan's order and machine time.
+
+    With --max-minutes: the most informative plan that fits, with its D-efficiency and predicted verify error
+    (the paper's pose sets are then left out).
+    """
+    from hilcal import design as dsg
+    from procedures.cli.plan_time import design_plan, timing_or_fail
+
+    if noise_mm <= 0 or n_verify < 1 or (max_minutes is not None and max_minutes <= 0):
+        fail("--noise-mm, --n-verify and --max-minutes must be positive")
+    rb = robot_or_fail(robot)
+    timing = timing_or_fail(station)
+    if max_minutes is not None and out_csv is None:
+        design_plan(rb, seed, timing, max_minutes, noise_mm, plan_out, n_verify)
+        return
+    sets = dsg.paper_pose_sets(rb, seed)
+    out.print(dsg.design_report(list(sets.values())), highlight=False)
+    if out_csv is not None:
+        if pose_set not in sets:
+            fail(f"unknown pose set {pose_set!r}: choose one of {', '.join(sets)}")
+        header = "x_mm,y_mm,z_mm,roll_deg,pitch_deg,yaw_deg"
+        np.savetxt(out_csv, sets[pose_set].poses, delimiter=",", header=header, comments="", fmt="%.6f")
+        out.print(f"wrote {len(sets[pose_set].poses)} poses of {pose_set} to {out_csv}")
+    design_plan(rb, seed, timing, max_minutes, noise_mm, plan_out, n_verify)
+
+
+def simulate(
+    out_path: Annotated[Path, typer.Option("--out", help="recording CSV to write")],
+    seed: int = 0,
+    errors: Annotated[str, typer.Option(help="errors TOML file or table2|table3|table4|table5|zero")] = "table2",
+    noise_mm: Annotated[float, typer.Option("--noise-mm", help="CMM noise std per sphere coordinate, mm")] = 0.005,
+    robot: RobotOption = None,
+) -> None:
+    """Write a recording from the in-process simulated rig (32 D-optimal + 24 verification poses)."""
+    if noise_mm < 0:
+        fail("--noise-mm must be >= 0")
+    rb = robot_or_fail(robot)
+    write_simulated_recording(rb, out_path, seed, errors, noise_mm)
+    out.print(f"wrote {out_path}")

@@ -1,0 +1,145 @@
+"""Commands for the operator at the machine: run (and resume), history, upload, rollback."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from procedures.cli.common import EstimatorChoice, RobotOption, err, fail, out
+from procedures.cli.panel import DEFAULT_PORT, PortOption
+
+
+def run(
+    out_dir: Annotated[Path, typer.Option("--out", help="run folder: journal, logs, recording, report")],
+    sim: Annotated[bool, typer.Option("--sim", help="start the simulated devices and run against them")] = False,
+    station: Annotated[Path | None, typer.Option(help="station TOML (CAN, Modbus, CMM, robot, timing); with --sim "
+                                                 "only its [timing] is used")] = None,
+    sim_config: Annotated[Path | None, typer.Option(help="simulator TOML for --sim")] = None,
+    resume: Annotated[str | None, typer.Option(help="continue the interrupted run RUN_ID in --out")] = None,
+    yes: Annotated[bool, typer.Option("--yes", help="unattended: answer every prompt yes")] = False,
+    estimator: Annotated[EstimatorChoice, typer.Option(help="parameters to upload")] = EstimatorChoice.ls,
+    force: Annotated[bool, typer.Option(help="upload even an implausible parameter set")] = False,
+    robot: RobotOption = None,
+    plan: Annotated[Path | None, typer.Option(help="re-run a saved plan.json")] = None,
+    seed: int = 0,
+    records: Annotated[Path | None, typer.Option(help="records database (default $HILCAL_RECORDS)")] = None,
+    operator: Annotated[str | None, typer.Option(help="name recorded with the run")] = None,
+    panel: Annotated[bool, typer.Option("--panel", help="serve the operator panel (a web page) for this run")] = False,
+    port: PortOption = DEFAULT_PORT,
+    panel_host: Annotated[str, typer.Option(help="panel address; other than the loopback needs the printed token")] = (
+        "127.0.0.1"),
+    panel_linger_min: Annotated[float, typer.Option(help="keep the panel up this long after the run", min=0)] = 30.0,
+) -> None:
+    """Measure, identify, upload (transactionally) and verify: the whole calibration at the machine."""
+    from procedures.cli.panel import run_with_panel
+    from procedures.cli.plan_time import print_run_estimate, timing_or_fail
+    from procedures.cli.sim_station import SIM_TIMING, sim_station
+    from procedures.runner import RunRequest, default_records_path, execute_run
+
+    if resume is None and not sim and station is None:
+        fail("give --station FILE for real hardware, or --sim for the simulated devices")
+    timing = (timing_or_fail(station) if station is not None else SIM_TIMING) if sim else None
+    request = RunRequest(out_dir=out_dir, sim=sim, station_path=station, sim_config=sim_config, resume=resume,
+                         yes=yes, estimator=estimator.value, force=force, robot_path=robot, plan_path=plan,
+                         seed=seed, records_path=records, operator=operator, sim_station=sim_station, timing=timing,
+                         on_estimate=print_run_estimate)
+
+    def execute(confirm, session=None):
+        result = execute_run(request, confirm, session)
+        (out if result.code == 0 else err).print(result.message, highlight=False)
+        if result.report_path is not None:
+            out.print(f"report: {result.report_path} and {result.report_path.with_suffix('.html')}")
+        return result
+
+    if panel:
+        result = run_with_panel(lambda session: execute(session.confirm, session), host=panel_host, port=port,
+                                operator=operator, yes=yes, records=records or default_records_path(),
+                                linger_min=panel_linger_min)
+    else:
+        result = execute(None if yes else (lambda text: typer.confirm(text, default=False)))
+    raise typer.Exit(result.code)
+
+
+def _params_client(station: Path):
+    from drivers.controller_modbus import ControllerParams
+    from procedures.station import StationConfigError, load_station
+
+    try:
+        mb = load_station(station).modbus
+    except StationConfigError as e:
+        fail(str(e))
+    return ControllerParams(mb.host, mb.port, serial_port=mb.serial_port, baudrate=mb.baudrate,
+                            device_id=mb.device_id, timeout_s=mb.timeout_s)
+
+
+def _records(path: Path | None):
+    from procedures.records import Records
+    from procedures.runner import default_records_path
+
+    return Records(path or default_records_path())
+
+
+def history(
+    limit: int = 20,
+    records: Annotated[Path | None, typer.Option(help="records database (default $HILCAL_RECORDS)")] = None,
+) -> None:
+    """Past runs, parameter sets and uploads from the calibration records."""
+    from procedures.records import format_history
+
+    with _records(records) as db:
+        out.print(format_history(db.history(limit)), highlight=False)
+
+
+def upload(
+    params_file: Annotated[Path, typer.Argument(help="parameter set JSON {a_mm, b_mm, l0_mm}")],
+    station: Annotated[Path, typer.Option(help="station TOML (its [modbus] section is used)")],
+    save: Annotated[bool, typer.Option(help="also save to non-volatile memory")] = False,
+    yes: Annotated[bool, typer.Option("--yes", help="do not ask for confirmation")] = False,
+    records: Annotated[Path | None, typer.Option(help="records database")] = None,
+    operator: Annotated[str | None, typer.Option(help="name recorded with the upload")] = None,
+) -> None:
+    """Stand-alone controller parameter upload: validate, show the diff, confirm, upload, read back, record."""
+    from drivers.controller_modbus import ParamsError
+    from procedures.records import ParameterFileError, UploadDeclined, format_diff, upload_parameter_file
+
+    client = _params_client(station)
+    try:
+        with _records(records) as db:
+            result = upload_parameter_file(client, params_file, db, operator or "", save, yes,
+                                           lambda text: typer.confirm(text, default=False))
+    except ParameterFileError as e:
+        fail(str(e))
+    except UploadDeclined as e:
+        err.print(str(e))
+        raise typer.Exit(1) from None
+    except ParamsError as e:
+        err.print(f"[bold red]upload failed:[/] {e}", highlight=False)
+        raise typer.Exit(3) from None
+    finally:
+        client.close()
+    out.print(format_diff(result["diff"]), highlight=False)
+    record = result["record"] or {}
+    out.print(f"outcome: {record.get('outcome', 'unchanged')}; sha256 {result['file_sha256'][:16]}")
+
+
+def rollback(
+    station: Annotated[Path, typer.Option(help="station TOML (its [modbus] section is used)")],
+    records: Annotated[Path | None, typer.Option(help="records database")] = None,
+    operator: Annotated[str | None, typer.Option(help="name recorded with the rollback")] = None,
+) -> None:
+    """Restore the controller's previous parameter set (its backup bank), and record it."""
+    from drivers.controller_modbus import ParamsError
+    from procedures.records import rollback_controller
+
+    client = _params_client(station)
+    try:
+        with _records(records) as db:
+            record = rollback_controller(client, db, operator or "")
+    except ParamsError as e:
+        err.print(f"[bold red]rollback failed:[/] {e}", highlight=False)
+        raise typer.Exit(3) from None
+    finally:
+        client.close()
+    out.print(f"rollback: {record.get('outcome')}")

@@ -1,0 +1,36 @@
+"""`hilcal run --sim`: start the simulated devices as a subprocess and hand the runner a station wired to them.
+
+The runner knows no simulator; it calls this context manager (``RunRequest.sim_station``) for a new run and for
+the resume of a ``--sim`` run alike, so a resumed run re-spawns the simulator on the run's state file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
+
+from procedures.runner import SimulatorStartError
+from procedures.station import StationConfig, station_from_channels
+from procedures.timing import TimingSection
+from sim_devices.launcher import SimStartError, spawn_sim_subprocess, stop_sim_subprocess
+
+SIM_TIMING = TimingSection(leg_speed_mm_s=5100.0, leg_accel_mm_s2=1e6, settle_s=0.05, cmm_s_per_pose=0.38,
+                           move_overhead_s=0.006)
+"""The timing of the default simulated station, as an operator would write it down for a real one: measured on
+its devices (timed moves and pose measurements, benchmarks/bench_machine_time.py), never read from the simulator's
+configuration. `hilcal run --sim --station FILE` uses FILE's [timing] instead."""
+
+
+@contextlib.contextmanager
+def sim_station(sim_config: str | None, out_dir: Path, robot_path: str | None) -> Iterator[StationConfig]:
+    """Spawn the simulator (state in ``out_dir/sim_state.json``, log in ``out_dir/sim.log``); stop it on exit."""
+    try:
+        proc, channels = spawn_sim_subprocess(sim_config, ["--state-file", str(out_dir / "sim_state.json")],
+                                              log_path=out_dir / "sim.log")
+    except SimStartError as e:
+        raise SimulatorStartError(str(e)) from e
+    try:
+        yield station_from_channels(channels, robot_path)
+    finally:
+        stop_sim_subprocess(proc)

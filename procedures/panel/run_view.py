@@ -1,0 +1,174 @@
+"""What the engine does, as the panel's sections: plan, progress and time estimate, measurements, identification.
+
+`RunView.on_engine_event` is an engine observer (see `procedures.engine.EngineObserver`): it reads the
+messages the procedure yields and their results, and never talks to a device. Each measurement is shown
+as its measured-vs-commanded pose error the moment the engine has journaled it.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from hilcal.metrics import pose_errors
+from procedures import messages as m
+from procedures.calibration_procedure import PRE_PHASES
+
+LABEL = re.compile(r"^(?P<phase>[a-z_]+) (?P<pose>\d+) (?P<step>[a-z_]+)$")
+PHASE_TITLES = {"measure": "measurement poses", "verify": "verification poses, before calibration",
+                "verify_after": "verification poses, after calibration"}
+PLAN_PHASE = {"measure": "measure", "verify": "verify", "verify_after": "verify"}
+ACTIVITY = {"PrepareCmm": "homing the CMM", "ReadParams": "reading the controller parameters",
+            "ReadLegs": "reading the leg lengths", "Enable": "servo on", "Disable": "servo off",
+            "Settle": "settling", "Upload": "uploading the parameter set (transaction with read-back)",
+            "Prompt": "waiting for the operator"}
+
+RemainingEstimate = Callable[[int, int, float], float | None]
+"""(poses done in this session, poses left, seconds since this session started) -> seconds left, or None."""
+
+
+def ratio_estimate(done_here: int, left: int, elapsed_s: float) -> float | None:
+    """Seconds left at the rate of this session so far: elapsed / done x left (None before the first pose)."""
+    if done_here <= 0:
+        return None
+    return elapsed_s / done_here * left
+
+
+def measurement_item(row: dict[str, Any]) -> dict[str, Any]:
+    """A journal measurement row as the panel shows it: its pose error, measured vs commanded."""
+    meas = np.asarray(row["meas"], dtype=float)
+    cmd = np.asarray(row["cmd"], dtype=float)
+    position_mm, orientation_deg = pose_errors(meas[None, :], cmd[None, :])
+    return {"phase": row["phase"], "index": int(row["index"]), "seq": int(row["seq"]), "time_s": row["time_s"],
+            "position_error_mm": float(position_mm[0]), "orientation_error_deg": float(orientation_deg[0]),
+            "cmd": cmd, "meas": meas, "sphere_fit_rms_mm": row.get("detail", {}).get("sphere_fit_rms_mm")}
+
+
+class RunView:
+    """Turns engine events into panel sections; `show_plan` first so progress knows the total."""
+
+    def __init__(self, live: Any, estimate: RemainingEstimate = ratio_estimate,
+                 estimate_basis: str = "elapsed / poses done in this session x poses left") -> None:
+        self.live = live
+        self.estimate = estimate
+        self.estimate_basis = estimate_basis
+        self.total = 0
+        self._poses: dict[str, np.ndarray] = {}
+        self._done: set[tuple[str, int]] = set()
+        self._session_t0: float | None = None
+        self._session_epoch: float | None = None
+        self._done_here = 0
+        self._current: object | None = None
+        self._progress: dict[str, Any] = {}
+
+    def show_plan(self, plan: Any, robot: Any) -> None:
+        self._poses = {"measure": plan.poses("measure"), "verify": plan.poses("verify")}
+        self.total = len(plan.measure_poses) + 2 * len(plan.verify_poses)
+        self.live.set("plan", {"robot": robot.name, "sha256": plan.sha256(), "measure": self._poses["measure"],
+                               "verify": self._poses["verify"], "workspace": robot.workspace, "home": robot.home,
+                               "settle_s": plan.settle_s, "approach_mm": plan.approach_mm, "seed": plan.seed})
+
+    # ------------------------------------------------------------------ engine events
+
+    def on_engine_event(self, kind: str, data: dict[str, Any]) -> None:
+        if kind == "message":
+            self._on_message(data["message"])
+        elif kind == "done":
+            self._on_done(data["message"], data["result"])
+        elif kind == "paused":
+            self.live.update("run", status="paused")
+            self._set_progress(activity="paused: motion stopped")
+        elif kind == "resumed":
+            self.live.update("run", status="running")
+            self.live.note("continued after the pause")
+        elif kind == "stopped":
+            self.live.note(f"motion stopped: {data.get('reason')}", "warn")
+            if isinstance(self._current, m.Measure | m.PrepareCmm):
+                self.live.update("cmm", last_error=data.get("reason"), last_error_at=time.time())
+
+    def _on_message(self, msg: object) -> None:
+        self._current = msg
+        if self._session_t0 is None:
+            self._session_t0, self._session_epoch = time.monotonic(), time.time()
+            self.live.update("run", status="running")
+        if isinstance(msg, m.MoveLegs):
+            match = LABEL.match(msg.label)
+            if match is None:
+                self._set_progress(activity=f"moving ({msg.label})")
+            else:
+                self._at_pose(match["phase"], int(match["pose"]) - 1, f"moving ({match['step']})")
+        elif isinstance(msg, m.Measure):
+            self._at_pose(msg.phase, msg.index, "measuring with the CMM")
+        elif isinstance(msg, m.PrepareCmm):
+            self.live.update("cmm", session="starting")
+            self._set_progress(activity=ACTIVITY["PrepareCmm"])
+        elif isinstance(msg, m.Checkpoint):
+            self._on_checkpoint(msg)
+        elif type(msg).__name__ in ACTIVITY:
+            self._set_progress(activity=ACTIVITY[type(msg).__name__])
+
+    def _on_done(self, msg: object, result: Any) -> None:
+        if isinstance(msg, m.Measure):
+            self._add_rows([result], fresh=True)
+            self.live.update("cmm", session="ready", last_pose_at=time.time())
+        elif isinstance(msg, m.Recall):
+            self._add_rows(result, fresh=False)
+            if set(msg.phases) == set(PRE_PHASES):
+                self._set_progress(activity="identifying (least squares and L-infinity)")
+        elif isinstance(msg, m.PrepareCmm):
+            self.live.update("cmm", session="ready", homed_at=time.time())
+            self.live.note("CMM session started and homed")
+        elif isinstance(msg, m.Upload):
+            self.live.set("upload", {"outcome": result.get("outcome"), "sha256": result.get("sha256"),
+                                     "record": result.get("record"), "save_record": result.get("save_record")})
+            self.live.note(f"parameter upload: {result.get('outcome')} (read back and compared)")
+        elif isinstance(msg, m.ReadParams):
+            self.live.note(f"controller parameters read ({msg.key})")
+
+    def _on_checkpoint(self, msg: m.Checkpoint) -> None:
+        data = msg.data or {}
+        if msg.label in ("identified", "refused") and "identification" in data:
+            self.live.set("identification", {**data["identification"], "status": msg.label,
+                                             "mode": data.get("mode"), "problems": data.get("problems", [])})
+            self.live.note("identification refused: " + "; ".join(data.get("problems", []))
+                           if msg.label == "refused" else "identification done", "warn" if msg.label == "refused"
+                           else "info")
+        elif msg.label == "complete":
+            self._set_progress(activity="verification done; writing the report")
+
+    # ------------------------------------------------------------------ progress
+
+    def _add_rows(self, rows: list[dict[str, Any]], fresh: bool) -> None:
+        for row in rows:
+            key = (row["phase"], int(row["index"]))
+            if key in self._done:
+                continue
+            self._done.add(key)
+            self._done_here += int(fresh)
+            self.live.append("measurements", measurement_item(row))
+        self._set_progress()
+
+    def _at_pose(self, phase: str, index: int, activity: str) -> None:
+        poses = self._poses.get(PLAN_PHASE.get(phase, phase))
+        target = poses[index].tolist() if poses is not None and 0 <= index < len(poses) else None
+        self._set_progress(phase=phase, phase_title=PHASE_TITLES.get(phase, phase), pose=index + 1,
+                           poses_in_phase=None if poses is None else len(poses), target=target, activity=activity)
+
+    def _set_progress(self, **fields: Any) -> None:
+        """Publish progress when something an operator reads changed; the estimate is redone per pose done."""
+        before = dict(self._progress)
+        self._progress.update(fields)
+        self._progress["session_started_at"] = self._session_epoch
+        done = len(self._done)
+        if done != before.get("done") or "remaining_s" not in before:
+            elapsed = 0.0 if self._session_t0 is None else time.monotonic() - self._session_t0
+            left = max(self.total - done, 0)
+            self._progress.update(done=done, total=self.total,
+                                  remaining_s=self.estimate(self._done_here, left, elapsed) if left else 0.0,
+                                  remaining_basis=self.estimate_basis, updated_at=time.time())
+        if self._progress != before:
+            self.live.set("progress", self._progress)

@@ -1,0 +1,159 @@
+"""The ``hilcal sim`` configuration: robot, rig truth, controller, CMM and state file, read from TOML and validated.
+
+Example configuration (every key optional; relative paths are relative to the file)::
+
+    robot = "robots/plant3.toml"    # default: the built-in paper Table 1 robot
+    state_file = "sim_state.json"   # default: no persistence
+
+    [rig]                           # SimulatedRig truth: seed and errors, plus any RigConfig field
+    seed = 0
+    errors = "table2"               # table2..table5, zero, or an errors TOML file
+    leg_resolution_mm = 0.001
+    [rig.effects.thermal_expansion]
+    enabled = true
+
+    [controller]                    # ControllerSimConfig; time_scale defaults to 100 here
+    time_scale = 100.0
+    [controller.can_faults]
+    drop_rate = 0.001
+
+    [cmm]                           # CmmServerConfig (time_scale defaults to 0.0005, tcp_port to 0 here)
+    noise_sigma_mm = 0.002          # probing noise per coordinate
+    alignment_error_mm = 2.0        # error of the published T_cmm<-base (a station's rough CMM set-up)
+    alignment_error_deg = 0.02
+    [cmm.faults]
+    garbage = 0.01
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import structlog
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from hilcal.robot import Robot
+from sim_devices.cmm_config import CmmServerConfig
+from sim_devices.config import BUILTIN_ERROR_SETS, GeometryErrors, RigConfig, load_errors
+from sim_devices.controller import ControllerSimConfig
+
+log = structlog.get_logger(__name__)
+
+
+class SimConfigError(ValueError):
+    """A simulator configuration that cannot be read or is not valid."""
+
+
+class SimRigSettings(BaseModel):
+    """The rig: ``seed``, ``errors`` (built-in name or TOML file) and any further ``RigConfig`` field."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+
+    seed: int = 0
+    errors: str = Field(default="table2", description=f"one of {', '.join(BUILTIN_ERROR_SETS)} or an errors TOML file")
+
+    @model_validator(mode="after")
+    def _valid_rig_fields(self) -> SimRigSettings:
+        try:
+            RigConfig.model_validate({**(self.model_extra or {}), "seed": self.seed, "errors": GeometryErrors.zero()})
+        except ValidationError as err:
+            raise ValueError("; ".join(
+                f"{'.'.join(str(p) for p in e['loc'])}: {e['msg'].removeprefix('Value error, ')}" for e in err.errors()
+            )) from None
+        return self
+
+    def rig_config(self, robot: Robot) -> RigConfig:
+        """The RigConfig with the errors loaded (ValueError naming the errors source if they cannot be)."""
+        errors = load_errors(self.errors, robot)
+        return RigConfig.model_validate({**(self.model_extra or {}), "seed": self.seed, "errors": errors})
+
+
+class SimControllerConfig(ControllerSimConfig):
+    """ControllerSimConfig with the launcher's default time scale: servo and rig clock × 100.
+
+    A 56-pose plan (~870 moves of at most 50 mm) then takes ~30 s: each move is bounded by the 20 ms heartbeat,
+    and the rig clock covers about the duration of a real run (~50 min).
+    """
+
+    time_scale: float = Field(default=100.0, gt=0, description="simulated seconds per real second")
+
+
+class SimCmmConfig(CmmServerConfig):
+    """CmmServerConfig with fast defaults, a TCP endpoint, and the error of the published CMM alignment."""
+
+    time_scale: float = Field(default=0.0005, ge=0, description="multiplies every CMM duration; 0 = instant")
+    tcp_port: int | None = Field(default=0, ge=0, le=65535, description="None: pty only; 0: ephemeral port")
+    alignment_error_mm: float = Field(default=2.0, ge=0, description="offset of the published T_cmm<-base")
+    alignment_error_deg: float = Field(default=0.02, ge=0, description="rotation error of the published T_cmm<-base")
+
+    def server_config(self, default_seed: int) -> CmmServerConfig:
+        """The CmmServerConfig to start the server with (seed: the rig seed unless set here)."""
+        data = self.model_dump(exclude={"alignment_error_mm", "alignment_error_deg"})
+        if "seed" not in self.model_fields_set:
+            data["seed"] = default_seed
+        return CmmServerConfig.model_validate(data)
+
+
+class SimConfig(BaseModel):
+    """Everything ``hilcal sim`` runs (see the module docstring for a TOML example)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    robot: Path | None = Field(default=None, description="robot TOML file; None: the built-in paper Table 1 robot")
+    rig: SimRigSettings = Field(default_factory=SimRigSettings)
+    controller: SimControllerConfig = Field(default_factory=SimControllerConfig)
+    cmm: SimCmmConfig = Field(default_factory=SimCmmConfig)
+    state_file: Path | None = Field(default=None, description="controller and rig state, kept across restarts")
+
+
+def format_validation_errors(err: ValidationError, source: str) -> str:
+    lines = [f"{source}: {err.error_count()} problem(s)"]
+    for e in err.errors():
+        where = ".".join(str(p) for p in e["loc"]) or "<top>"
+        lines.append(f"  {where}: {e['msg'].removeprefix('Value error, ')}")
+    return "\n".join(lines)
+
+
+def _resolve(base: Path, value: Any) -> Any:
+    """A relative path string resolved against base (other values unchanged)."""
+    if isinstance(value, str) and value and not Path(value).is_absolute():
+        return str(base / value)
+    return value
+
+
+def load_sim_config(
+    path: str | Path | None = None, *, state_file: str | Path | None = None, seed: int | None = None
+) -> SimConfig:
+    """The configuration from a TOML file (None: defaults), with ``--state-file``/``--seed`` overrides.
+
+    Relative ``robot``, ``state_file`` and errors-file paths are relative to the file. SimConfigError otherwise.
+    """
+    data: dict[str, Any] = {}
+    source = "simulator defaults"
+    if path is not None:
+        p = Path(path)
+        source = f"simulator config {p}"
+        try:
+            data = tomllib.loads(p.read_text())
+        except OSError as err:
+            raise SimConfigError(f"{source}: cannot read: {err.strerror}") from None
+        except tomllib.TOMLDecodeError as err:
+            raise SimConfigError(f"{source}: not valid TOML: {err}") from None
+        base = p.resolve().parent
+        for key in ("robot", "state_file"):
+            data[key] = _resolve(base, data.get(key))
+        rig = data.get("rig")
+        if isinstance(rig, dict) and isinstance(rig.get("errors"), str) and rig["errors"] not in BUILTIN_ERROR_SETS:
+            data["rig"] = {**rig, "errors": _resolve(base, rig["errors"])}
+    if state_file is not None:
+        data["state_file"] = str(state_file)
+    if seed is not None:
+        rig = data.get("rig")
+        data["rig"] = {**(rig if isinstance(rig, dict) else {}), "seed": seed}
+    data = {k: v for k, v in data.items() if v is not None}
+    try:
+        return SimConfig.model_validate(data)
+    except ValidationError as err:
+        raise SimConfigError(format_validation_errors(err, source)) from None
