@@ -1,4 +1,4 @@
-"""Run every benchmark (``make bench``): core, protocols, CMM, runs, machine time, panel, paper study,
+"""Run every benchmark (``make bench``): core, protocols, CMM, runs, machine time, panel, soak, paper study,
 diagnosis study; ``--quick`` passes through.
 
 Each script runs in its own interpreter so one cannot leak state (plot backends, logging) into the other.
@@ -15,7 +15,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 SCRIPTS = ("bench_core.py", "bench_protocols_controller.py", "bench_cmm.py", "bench_run.py", "bench_machine_time.py",
-           "bench_panel.py",
+           "bench_panel.py", "bench_soak.py",
            "paper_study.py", "diagnosis_study.py")
 
 

@@ -6,11 +6,13 @@ counter and a CRC-8/SAE-J1850 checksum; every received frame is checked, so lost
 are discarded. A reader thread tracks the 20 ms heartbeat (Status + 3 Feedback frames sharing a counter);
 without a Status frame for ``heartbeat_timeout_s`` the controller is lost and every command except
 ``estop()`` raises ControllerLost until heartbeats resume. Commands are checked against the shared state
-machine before sending and then acknowledged by the controller (CommandAck).
+machine before sending and then acknowledged by the controller (CommandAck). An interface that keeps failing
+(an adapter unplugged and back) is opened again by the reader thread.
 """
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Sequence
@@ -60,6 +62,10 @@ UM_PER_MM = 1000
 MAX_UM = (1 << 24) - 1
 HEARTBEAT_PERIOD_S = 0.02
 DEFAULT_HEARTBEAT_TIMEOUT_S = 5 * HEARTBEAT_PERIOD_S
+REOPEN_AFTER_ERRORS = 3
+"""Consecutive receive errors after which the driver opens the CAN interface again."""
+REOPEN_WAIT_S = 0.5
+"""Rest after a failed re-open before the next try."""
 FEEDBACK_NAMES = ("FeedbackL12", "FeedbackL34", "FeedbackL56")
 SETPOINT_NAMES = ("SetpointL12", "SetpointL34", "SetpointL56")
 
@@ -153,6 +159,8 @@ class FrameStats:
     incomplete_cycles: int = 0
     transport_errors: int = 0
     tx_frames: int = 0
+    reopens: int = 0
+    """Times the CAN interface was opened again after it kept failing (an adapter unplugged and back)."""
 
 
 @dataclass(frozen=True)
@@ -219,6 +227,7 @@ class ControllerCan(ControllerInterface):
         self.last_fault_event: tuple[FaultCode, ControllerState] | None = None
         self._was_alive = False
         self._stop = threading.Event()
+        self._bus_config = dict(bus_config)
         try:
             self._bus = can.Bus(**bus_config)
         except (can.CanError, OSError, ValueError) as err:
@@ -231,17 +240,42 @@ class ControllerCan(ControllerInterface):
     # ------------------------------------------------------------------ receive side
 
     def _read_loop(self) -> None:
+        errors = 0
         while not self._stop.is_set():
             try:
                 msg = self._bus.recv(timeout=0.02)
             except (can.CanError, OSError, ValueError) as err:
                 self.frame_stats.transport_errors += 1
-                log.warning("can_receive_error", error=str(err))
+                errors += 1
+                log.warning("can_receive_error", error=str(err), consecutive=errors)
+                self._track_liveness()
+                if errors >= REOPEN_AFTER_ERRORS:
+                    errors = 0 if self._reopen() else errors
                 self._stop.wait(0.01)
                 continue
+            errors = 0
             if msg is not None:
                 self._on_message(msg)
             self._track_liveness()
+
+    def _reopen(self) -> bool:
+        """Open the CAN interface again (an adapter unplugged and back); one try, then REOPEN_WAIT_S of rest.
+
+        While the interface is down no heartbeat arrives, so the controller counts as lost and nothing is sent;
+        how long a run waits for it is the procedure's decision (its grace period), not the driver's.
+        """
+        with self._send_lock:
+            with contextlib.suppress(can.CanError, OSError, ValueError):
+                self._bus.shutdown()
+            try:
+                self._bus = can.Bus(**self._bus_config)
+            except (can.CanError, OSError, ValueError) as err:
+                log.warning("can_reopen_failed", error=str(err))
+                self._stop.wait(REOPEN_WAIT_S)
+                return False
+        self.frame_stats.reopens += 1
+        log.warning("can_reopened", reopens=self.frame_stats.reopens)
+        return True
 
     def _track_liveness(self) -> None:
         alive = self.controller_alive

@@ -66,6 +66,8 @@ class RunReport:
     warnings: tuple[str, ...] = ()
     machine_time: dict | None = None
     """``hilcal.time_report.time_section``: estimated against actual time per phase."""
+    links: dict | None = None
+    """Per link (controller, cmm, modbus): holds, retakes, total and longest hold in s, lost or not."""
 
     def __post_init__(self) -> None:
         if self.identifications and self.chosen not in self.identifications:
@@ -195,6 +197,7 @@ def report_json(r: RunReport) -> dict[str, Any]:
         "times": {"started_at": r.started_at, "finished_at": r.finished_at},
         "warnings": list(r.warnings),
         "machine_time": r.machine_time,
+        "links": r.links,
     }
     return _jsonable(out)
 
@@ -434,6 +437,18 @@ td,th{border:1px solid #ccc;padding:3px 8px;text-align:right;vertical-align:top}
 .warn{background:#ffd;padding:.4em 1em}code{font-size:90%}"""
 
 
+def links_lines(links: dict | None) -> list[str]:
+    """One line per link: how often the run held or retried on it and for how long (s)."""
+    if not links:
+        return ["links: not recorded"]
+    return [f"{name}: {v['holds']} holds/retries, {v['retakes']} poses re-taken, held {v['held_s']:.2f} s in all "
+            f"(longest {v['longest_hold_s']:.2f} s){', LOST' if v['lost'] else ''}" for name, v in links.items()]
+
+
+def _links_html(links: dict | None) -> str:
+    return "<ul>" + "".join(f"<li>{_esc(line)}</li>" for line in links_lines(links)) + "</ul>"
+
+
 def report_html(r: RunReport) -> str:
     """The self-contained page: inline CSS, plots as data URIs, no external references."""
     def img(b64: str | None, alt: str) -> str:
@@ -463,6 +478,7 @@ def report_html(r: RunReport) -> str:
 <p>verification (measured): {_esc(headline)}</p>
 <h2>Verification errors before and after calibration (cf. paper Table 7)</h2>{_table7_html(r)}
 <h2>Machine time: estimated against actual</h2>{time_html(r.machine_time)}
+<h2>Links: holds and retries</h2>{_links_html(r.links)}
 <h2>Absolute position error at the verification poses (cf. paper Fig. 13)</h2>
 {img(_per_pose_plot(r, 0, "position", "mm"), "position error per verification pose")}
 <h2>Absolute orientation error at the verification poses (cf. paper Fig. 14)</h2>

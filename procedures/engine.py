@@ -2,9 +2,9 @@
 
 Devices (`procedures.station.Devices`) hold a `drivers.controller_base.ControllerInterface`, a
 `drivers.controller_modbus.ControllerParams` and a `drivers.cmm_base.CmmInterface`, the robot and the
-CMM alignment. A fault, a lost
-device or an operator abort stops motion, keeps the journal and raises `RunInterrupted` with the way
-to resume. An optional observer (the operator panel) is told of every message, result, pause and stop.
+CMM alignment. Short link drop-outs are ridden through (`procedures.link_guard.LinkGuard`); a fault, a link
+that stays down or an operator abort stops motion, keeps the journal and raises `RunInterrupted` with the
+way to resume. An optional observer (the operator panel) is told of every message, result, pause and stop.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from drivers.controller_modbus import ParameterSet
 from hilcal.protocols.controller_states import ControllerState
 from procedures import messages as m
 from procedures.journal import Journal
+from procedures.link_guard import LinkGuard, LinksSection
 
 log = structlog.get_logger(__name__)
 
@@ -29,7 +30,8 @@ MOTION_STATES = (ControllerState.ENABLED, ControllerState.MOVING, ControllerStat
 
 EngineObserver = Callable[[str, dict[str, Any]], None]
 """Called as observer(kind, data) on the engine's thread: "started", "message" {message} before a message is
-executed, "done" {message, result} after, "paused" {message}, "resumed" {message}, "stopped" {reason},
+executed, "done" {message, result} after, "paused" {message}, "resumed" {message}, "held" {link, message, error},
+"recovered" {link, message, held_s}, "stopped" {reason},
 "ended". An observer's exceptions are logged and ignored; a KeyboardInterrupt it raises is a Ctrl-C."""
 
 
@@ -53,7 +55,8 @@ class Engine:
 
     def __init__(self, devices: Any, journal: Journal, *, confirm: Callable[[str], bool] | None = None,
                  on_measure: Callable[[dict], None] | None = None, move_timeout_s: float = 120.0,
-                 observer: EngineObserver | None = None) -> None:
+                 observer: EngineObserver | None = None, links: LinksSection | None = None,
+                 approach_mm: float = 0.5) -> None:
         self.devices = devices
         self.move_timeout_s = move_timeout_s
         self.journal = journal
@@ -61,6 +64,8 @@ class Engine:
         self.on_measure = on_measure
         self.observer = observer
         self.t0 = time.monotonic()
+        self.guard = LinkGuard(devices, journal, links, approach_mm=approach_mm, move_timeout_s=move_timeout_s,
+                               publish=self._publish)
 
     def _publish(self, kind: str, **data: Any) -> None:
         if self.observer is not None:
@@ -99,7 +104,7 @@ class Engine:
         while True:
             try:
                 self._publish("message", message=msg)
-                result = self._dispatch(msg)
+                result = self.guard.run(msg, self._dispatch)
                 self._publish("done", message=msg, result=result)
                 return result
             except KeyboardInterrupt:

@@ -110,6 +110,13 @@ class Journal:
         marks = ",".join("?" * len(kinds))
         return int(self._db.execute(f"SELECT COUNT(*) FROM events WHERE kind IN ({marks})", kinds).fetchone()[0])
 
+    def events(self, *kinds: str) -> list[dict[str, Any]]:
+        """Journaled events of these kinds in order: time (s since the epoch), kind, data."""
+        marks = ",".join("?" * len(kinds))
+        rows = self._db.execute(f"SELECT time, kind, data_json FROM events WHERE kind IN ({marks}) ORDER BY rowid",
+                                kinds).fetchall()
+        return [{"time": t, "kind": k, "data": json.loads(d)} for t, k, d in rows]
+
     def event(self, kind: str, **data: Any) -> None:
         self._db.execute("INSERT INTO events (time, kind, data_json) VALUES (?, ?, ?)",
                          (time.time(), kind, json.dumps(data, default=str)))

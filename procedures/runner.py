@@ -14,6 +14,7 @@ import datetime as dt
 import json
 import logging
 import os
+import shlex
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager
@@ -41,6 +42,7 @@ from procedures.calibration_procedure import (
 )
 from procedures.engine import Engine, RunInterrupted
 from procedures.journal import Journal
+from procedures.link_guard import links_summary
 from procedures.plan import CalibrationPlan, PlanError, estimate_plan, load_plan, make_plan, save_plan
 from procedures.timing import TimingSection
 
@@ -116,12 +118,13 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
     try:
         with _progress(total, done) as advance:
             engine = Engine(devices, journal, confirm=confirm, on_measure=advance,
-                            move_timeout_s=devices.station.motion.move_timeout_s, observer=observer)
+                            move_timeout_s=devices.station.motion.move_timeout_s, observer=observer,
+                            links=devices.station.links, approach_mm=plan.approach_mm)
             result: ProcedureResult = engine.run(calibration_procedure(plan, robot, options))
     except RunInterrupted as e:
         journal.set_status("interrupted")
-        return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} stopped: {e}. The journal is kept; continue with "
-                       f"`hilcal run --resume {run_id} --out {out_dir}`" + (" --sim" if options_sim(journal) else ""))
+        return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} stopped: {e}. The journal is kept; continue with: "
+                       f"{resume_command(run_id, out_dir)}")
     pre_rows = journal.measurements(PRE_PHASES)
     write_recording(out_dir / "recording.csv", recording_from_rows(pre_rows, robot))
     machine_time = None if timing is None else machine_time_report(journal, plan, robot, timing)
@@ -133,8 +136,9 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
     return RunExit(EXIT_OK, run_id, f"run {run_id} complete", report_path)
 
 
-def options_sim(journal: Journal) -> bool:
-    return bool(journal.run_info()["options"].get("sim"))
+def resume_command(run_id: str, out_dir: Path) -> str:
+    """The shell command that continues a run, quoted so it works when pasted (a --sim run needs no --sim)."""
+    return shlex.join(["hilcal", "run", "--resume", run_id, "--out", str(out_dir)])
 
 
 def machine_time_report(journal: Journal, plan: CalibrationPlan, robot: Robot, timing: TimingSection) -> dict:
@@ -177,6 +181,7 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
         },
         upload=result.upload,
         machine_time=machine_time,
+        links=links_summary(journal),
     )
     json_path, _ = write_run_report(out_dir, report)
     journal.event("report", path=str(json_path))
@@ -281,7 +286,7 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
             devices = stack.enter_context(open_devices(station))
         except DeviceOpenError as e:
             return RunExit(EXIT_INTERRUPTED, run_id, f"cannot open the station's devices: {e}; the journal is kept, "
-                           f"continue with `hilcal run --resume {run_id} --out {req.out_dir}`")
+                           f"continue with: {resume_command(run_id, req.out_dir)}")
         run_options = RunOptions(estimator=options["estimator"], force=bool(options["force"]))
         operator = req.operator
         if panel is not None:
@@ -293,7 +298,7 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
                 operator = panel.wait_start() or operator
             except (NotStarted, KeyboardInterrupt):
                 result = RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} not started by the operator; start it "
-                                 f"later with `hilcal run --resume {run_id} --out {req.out_dir}`")
+                                 f"later with: {resume_command(run_id, req.out_dir)}")
                 panel.finished(code=result.code, message=result.message, status="not started", out_dir=None,
                                report=None)
                 return result

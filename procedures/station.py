@@ -31,7 +31,12 @@ Example::
 
     [motion]
     move_timeout_s = 120.0
-    heartbeat_timeout_s = 0.1
+    heartbeat_timeout_s = 0.1          # a later heartbeat: link down, nothing is sent, the run holds
+
+    [links]                            # procedures.link_guard.LinksSection: riding through drop-outs
+    heartbeat_grace_s = 1.0            # the run ends only after this long without a heartbeat
+    cmm_retries = 2
+    modbus_retries = 3
 
     [timing]                           # procedures.timing.TimingSection: the machine's speed, for estimates
     leg_speed_mm_s = 50.0
@@ -61,6 +66,7 @@ from drivers.cmm_serial import SerialCmm, SerialCmmConfig
 from drivers.controller_can import ControllerCan
 from drivers.controller_modbus import ControllerParams
 from hilcal.robot import Robot, RobotFileError, load_robot
+from procedures.link_guard import LinksSection
 from procedures.timing import TimingSection
 
 log = structlog.get_logger(__name__)
@@ -142,7 +148,8 @@ class MotionSection(_Strict):
     """Timeouts and tolerances of the controller link and of moves."""
 
     move_timeout_s: float = Field(default=120.0, gt=0, description="one move_legs call")
-    heartbeat_timeout_s: float = Field(default=0.1, gt=0, description="controller lost after this silence")
+    heartbeat_timeout_s: float = Field(default=0.1, gt=0, description="link down (no command sent) after this "
+                                       "silence; the run holds and ends only after [links] heartbeat_grace_s")
     ack_timeout_s: float = Field(default=0.5, gt=0, description="command acknowledgement")
     connect_timeout_s: float = Field(default=5.0, gt=0, description="first heartbeat after opening CAN")
     position_tolerance_mm: float = Field(default=0.01, gt=0, description="feedback vs setpoint at IN_POSITION")
@@ -157,6 +164,7 @@ class StationConfig(_Strict):
     cmm: CmmSection
     motion: MotionSection = Field(default_factory=MotionSection)
     timing: TimingSection = Field(default_factory=TimingSection)
+    links: LinksSection = Field(default_factory=LinksSection)
     records: Path | None = Field(default=None, description="folder for run records")
     operator: str | None = None
 

@@ -1,4 +1,4 @@
-"""CAN frame fault injection for the simulated controller: drop, corrupt, repeat and delay frames, silence heartbeats.
+"""CAN frame fault injection for the simulated controller: drop, corrupt, repeat, delay frames; silences; link gaps.
 
 ``CanFaultInjector`` decides per frame (seeded rates and one-shot rules); ``FrameOutbox`` holds the frames it
 delays until they are due. Both CAN servers (``slcan_server.py``, ``can_bus_server.py``) use them.
@@ -16,6 +16,7 @@ from typing import Literal
 
 from sim_devices.can_peer import Frame
 from sim_devices.controller import CanFaultConfig
+from sim_devices.link_gaps import LinkGaps
 
 Direction = Literal["tx", "rx"]
 
@@ -45,6 +46,8 @@ class CanFaultInjector:
         self.repeat_rate = cfg.repeat_rate
         self.delay_s = cfg.delay_s
         self.heartbeat = cfg.heartbeat
+        self.gaps = LinkGaps(cfg.gaps_per_min, cfg.gap_min_s, cfg.gap_max_s, cfg.seed, cfg.gap_log, cfg.max_gaps,
+                             cfg.gap_at_frames)
         self._rules: list[_Rule] = []
         self.applied: Counter[str] = Counter()
 
@@ -86,7 +89,18 @@ class CanFaultInjector:
         return None
 
     def apply(self, direction: Direction, frame_id: int, data: bytes) -> list[tuple[float, bytes]]:
-        """The copies of a frame that actually go through, each with its extra delay in seconds."""
+        """The copies of a frame that actually go through, each with its extra delay in seconds.
+
+        In a link gap nothing the controller sends goes out; what it receives is kept and recorded.
+        """
+        if direction == "rx":
+            self.gaps.count_received()
+        into_gap = self.gaps.in_gap()
+        if into_gap is not None:
+            if direction == "tx":
+                self.applied["gap_drop"] += 1
+                return []
+            self.gaps.note_received(frame_id, into_gap)
         with self._lock:
             if self._take("drop", direction, frame_id) or self._rng.random() < self.drop_rate:
                 self.applied["drop"] += 1

@@ -21,7 +21,7 @@ from typing import Literal
 
 import numpy as np
 import structlog
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hilcal.protocols.controller_states import (
     Command,
@@ -65,6 +65,21 @@ class CanFaultConfig(_Strict):
     delay_s: float = Field(default=0.0, ge=0, description="extra latency of every controller frame")
     heartbeat: bool = Field(default=True, description="False: the controller sends no Status/Feedback")
     seed: int = 0
+    gaps_per_min: float = Field(default=0.0, ge=0, le=600,
+                                description="link gaps at random times (Poisson): no controller frame is sent")
+    gap_min_s: float = Field(default=0.05, gt=0, le=60, description="shortest gap, s (uniform between min and max)")
+    gap_max_s: float = Field(default=0.5, gt=0, le=60, description="longest gap, s")
+    gap_log: str | None = Field(default=None, description="JSONL file: every gap, and every frame received in one")
+    gap_at_frames: list[int] = Field(default_factory=list, description="also start a gap when the controller has "
+                                     "received this many frames (deterministic: the host sends only commands)")
+    max_gaps: int | None = Field(default=None, ge=0, description="no gap after this many (counted in gap_log too, "
+                                 "so a restarted simulator goes on counting)")
+
+    @model_validator(mode="after")
+    def _gap_range(self) -> CanFaultConfig:
+        if self.gap_max_s < self.gap_min_s:
+            raise ValueError(f"gap_max_s ({self.gap_max_s}) is below gap_min_s ({self.gap_min_s})")
+        return self
 
 
 class ModbusFaultConfig(_Strict):

@@ -43,6 +43,7 @@ class SlcanStats:
     output_dropped: int = 0
     sessions: int = 0
     internal_errors: int = 0
+    unplugged: int = 0
 
 
 def _frame_line(frame_id: int, data: bytes) -> bytes:
@@ -83,6 +84,7 @@ class SlcanServer:
         self._client: socket.socket | None = None
         self._wake_r, self._wake_w = -1, -1
         self._closed = False
+        self._unplug = False
 
     @property
     def channel(self) -> str:
@@ -110,6 +112,16 @@ class SlcanServer:
         self._thread.start()
         log.info("slcan_server_started", channel=self.channel)
         return self
+
+    def unplug(self) -> None:
+        """Drop the host's TCP connection, as a CAN gateway that reboots or a pulled cable would (tcp only).
+
+        The host sees its connection fail and must open the channel again; the controller runs on meanwhile.
+        """
+        if self.transport != "tcp":
+            raise ValueError("unplug needs the tcp transport (a pty cannot be re-opened at the same path)")
+        self._unplug = True
+        os.write(self._wake_w, b"u")
 
     def close(self) -> None:
         """Stop the server thread and release the pty/socket (idempotent)."""
@@ -183,6 +195,12 @@ class SlcanServer:
         readable, _, _ = select.select(readers, writers, [], timeout)
         if self._wake_r in readable:
             os.read(self._wake_r, 64)
+        if self._unplug:
+            self._unplug = False
+            self.stats.unplugged += 1
+            log.warning("slcan_unplugged", count=self.stats.unplugged)
+            self._drop_client()
+            readable = [fd for fd in readable if fd == self._wake_r]
         self._read_input(readable)
         now = time.monotonic()
         if self._open and now >= next_heartbeat:

@@ -414,6 +414,22 @@ def test_slcan_over_tcp_socket_url(make_can_rig: Callable[..., CanRig], robot: R
     np.testing.assert_allclose(r.driver.move_legs(setpoint, timeout_s=5.0), setpoint, atol=0.002)
 
 
+def test_an_unplugged_adapter_is_opened_again_and_nothing_moves_meanwhile(
+        make_can_rig: Callable[..., CanRig], robot: Robot) -> None:
+    r = make_can_rig("tcp", time_scale=500.0)
+    r.driver.enable()
+    r.server.unplug()
+    wait_until(lambda: not r.driver.controller_alive, timeout_s=2.0)
+    with pytest.raises(ControllerLost):
+        r.driver.move_legs(ik(robot, [0.0, 50.0, 3000.0, 0.0, 2.0, 0.0]), timeout_s=5.0)
+    assert r.peer.stats.rx_by_name.get("SetpointL12", 0) == 0
+    feedback = r.driver.wait_for_heartbeat(5.0)
+    assert r.driver.frame_stats.reopens >= 1 and r.server.stats.unplugged == 1
+    assert feedback.state is S.ENABLED, "the controller ran on; the host reads its state again"
+    setpoint = ik(robot, [0.0, 50.0, 3000.0, 0.0, 2.0, 0.0])
+    np.testing.assert_allclose(r.driver.move_legs(setpoint, timeout_s=5.0), setpoint, atol=0.002)
+
+
 def test_virtual_bus_fast_path(make_can_rig: Callable[..., CanRig], robot: Robot) -> None:
     r = make_can_rig("virtual", time_scale=500.0)
     r.driver.enable()

@@ -81,20 +81,11 @@ def test_live_run_in_two_browsers_then_abort_from_the_page_and_resume(tmp_path):
     proc = None
     try:
         with chromium() as first, chromium() as second:  # started first: their start-up loads the CPU
-            args = ["--sim", "--yes", "--out", str(out)]
-            for _attempt in range(3):
-                proc, log = _start(tmp_path, port, *args)
-                first.get(url)
-                done = wait_for(lambda p=proc: (_done(first) >= 3 and _done(first)) or p.poll() is not None, 120,
-                                "three poses done on the page")
-                if proc.poll() is None:
-                    break
-                assert "controller lost" in log.read_text(), log.read_text()  # a loaded machine: resume
-                args = ["--resume", _journal(out, "SELECT run_id FROM run")[0][0], "--yes", "--out", str(out)]
-                port = free_port()
-                url = f"http://127.0.0.1:{port}/"
-            else:
-                pytest.fail("the run kept losing the controller's heartbeat")
+            proc, log = _start(tmp_path, port, "--sim", "--yes", "--out", str(out))
+            first.get(url)
+            done = wait_for(lambda p=proc: (_done(first) >= 3 and _done(first)) or p.poll() is not None, 120,
+                            "three poses done on the page")
+            assert proc.poll() is None, log.read_text()
             assert re.fullmatch(r"(measure|verify) pose \d+ of (35|24)", text(first, "current-pose"))
             (journaled,) = _journal(out, "SELECT COUNT(*) FROM measurements")[0]
             assert done <= journaled, "the page cannot be ahead of the journal"
@@ -133,14 +124,9 @@ def test_live_run_in_two_browsers_then_abort_from_the_page_and_resume(tmp_path):
             wait_for(lambda: _done(third) >= kept, 60, "the resumed run's journaled poses on the page")
             assert "resumed" in text(third, "run-title")
         code = proc.wait(240)  # the browser is closed; the run goes on
-        for _ in range(2):  # a heartbeat lost to a loaded machine ends a run resumably (issue 11 rides it out)
-            if code == 0 or "controller lost" not in log.read_text():
-                break
-            proc, log = _start(tmp_path, free_port(), "--resume", run_id, "--yes", "--out", str(out))
-            code = proc.wait(240)
         assert code == 0, log.read_text()
         rows = _journal(out, "SELECT phase, pose_index FROM measurements")
-        assert len(rows) == len(set(rows)) == 80
+        assert len(rows) == len(set(rows)) == (32 + 3) + 24 + 24
         assert json.loads((out / "report.json").read_text())["status"] == "complete"
     finally:
         if proc is not None:
@@ -180,29 +166,19 @@ def _answer_questions(browser, operator: str, checks: dict) -> str:
 
 @pytest.mark.timeout(900)
 def test_a_whole_run_driven_from_the_browser_alone(tmp_path):
-    """Start, prompts, upload approval, report: all on the page. A heartbeat lost to a loaded machine ends a run
-    with code 3 and its journal kept (riding it out is issue 11's link guard); the page then shows it and the
-    run is resumed, at most twice, and driven from the page again."""
+    """Start, prompts, upload approval, report: all on the page (short heartbeat delays on a loaded machine are
+    ridden through by the link guard, so the run completes in one go)."""
     out = tmp_path / "run"
     checks: dict = {}
     proc = None
     try:
         with chromium() as browser:
-            args = ["--sim", "--out", str(out)]
-            for _attempt in range(3):
-                port = free_port()
-                url = f"http://127.0.0.1:{port}/"
-                proc, log = _start(tmp_path, port, *args)
-                browser.get(url)
-                outcome = _answer_questions(browser, "B. Rowser", checks)
-                if "complete" in outcome:
-                    break
-                assert "controller lost" in outcome, outcome
-                browser.find_element("id", "close-panel").click()
-                assert proc.wait(30) == 3, log.read_text()
-                args = ["--resume", _journal(out, "SELECT run_id FROM run")[0][0], "--out", str(out)]
-            else:
-                pytest.fail("the run did not complete in three attempts")
+            port = free_port()
+            url = f"http://127.0.0.1:{port}/"
+            proc, log = _start(tmp_path, port, "--sim", "--out", str(out))
+            browser.get(url)
+            outcome = _answer_questions(browser, "B. Rowser", checks)
+            assert "complete" in outcome, outcome
             assert checks["missing_name"] and checks["disabled_before_confirm"]
             assert checks["diff_rows"] > 6, "the diff lists the changed parameters"
             assert "Predicted after the upload" in checks["prediction"] and "max" in checks["prediction"]

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
+from hilcal.run_report import links_lines
 from procedures.cli.common import EstimatorChoice, RobotOption, err, fail, out
 from procedures.cli.panel import DEFAULT_PORT, PortOption
 
@@ -48,9 +50,11 @@ def run(
 
     def execute(confirm, session=None):
         result = execute_run(request, confirm, session)
-        (out if result.code == 0 else err).print(result.message, highlight=False)
+        (out if result.code == 0 else err).print(result.message, highlight=False, markup=False, soft_wrap=True)
         if result.report_path is not None:
-            out.print(f"report: {result.report_path} and {result.report_path.with_suffix('.html')}")
+            for line in links_lines(json.loads(result.report_path.read_text()).get("links")):
+                out.print(line, highlight=False, markup=False, soft_wrap=True)
+            out.print(f"report: {result.report_path} and {result.report_path.with_suffix('.html')}", soft_wrap=True)
         return result
 
     if panel:
