@@ -14,7 +14,7 @@ import cantools
 import numpy as np
 import pytest
 
-from drivers.controller_can import FrameCodec
+from drivers.can_codec import FrameCodec
 from hilcal.protocols import controller_dbc_text
 from hilcal.protocols.checksums import crc8_sae_j1850, crc16_modbus, crc32_ieee
 from hilcal.protocols.controller_states import Command, ControllerState, FaultCode, RefusalReason
