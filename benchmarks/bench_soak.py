@@ -106,7 +106,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _body(table: str, totals: str) -> str:
     return f"""Each run is a full `hilcal run --sim --yes` (83 measured poses, identification, upload, verification)
 against the simulated devices over their real transports (SLCAN on a pty, Modbus TCP, the CMM's serial line
-on a pty). A run that stops is resumed with the command it printed, as an operator would. Columns:
+on a pty). A run killed with SIGKILL is resumed with `hilcal run --resume RUN_ID --out DIR`, as an operator
+would; a run that stops by itself counts as aborted, with its message. Columns:
 
 - **lost / duplicated**: measurement rows missing from a completed run's journal, or present twice.
 - **half-written sets**: the simulator's live parameter set after the run is neither the set before the
@@ -116,7 +117,9 @@ on a pty). A run that stops is resumed with the command it printed, as an operat
   host could know the link was down. The simulator records them itself (`gap_log`).
 - **holds**: journaled `link_hold` events (the run held, waited for the link, checked and went on).
 - **verify max after**: the calibrated maximum position error at the 24 verification poses, and its largest
-  difference to the undisturbed run of the same seed (same rig, same plan; only CMM noise differs).
+  difference to the undisturbed run of the same seed (same rig, plan and noise
+  seeds: a run that rode through its faults measures the same numbers; a resumed run differs slightly, as
+  its restarts change when each pose is measured).
 
 {totals}
 

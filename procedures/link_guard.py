@@ -163,8 +163,7 @@ class LinkGuard:
         if target is None:
             return
         off_mm = float(np.max(np.abs(lengths - target)))
-        tolerance = getattr(self.devices.station.motion, "position_tolerance_mm", 0.01)
-        if not isinstance(msg, m.MoveLegs) and off_mm <= tolerance:
+        if not isinstance(msg, m.MoveLegs) and off_mm <= self.devices.station.motion.position_tolerance_mm:
             self.journal.event("link_position_checked", off_mm=off_mm)
             return
         self.journal.event("link_retake", message=type(msg).__name__, off_mm=off_mm,
