@@ -19,14 +19,13 @@ import numpy as np
 import structlog
 
 from drivers.controller_modbus import ParameterSet
-from hilcal.protocols.controller_states import ControllerState
+from hilcal.protocols.controller_states import MOTION_STATES, ControllerState
 from procedures import messages as m
 from procedures.journal import Journal
 from procedures.link_guard import LinkGuard, LinksSection
 
 log = structlog.get_logger(__name__)
 
-MOTION_STATES = (ControllerState.ENABLED, ControllerState.MOVING, ControllerState.IN_POSITION)
 
 EngineObserver = Callable[[str, dict[str, Any]], None]
 """Called as observer(kind, data) on the engine's thread: "started", "message" {message} before a message is

@@ -22,14 +22,13 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from drivers.cmm_base import CmmConnectionError, CmmProtocolError, CmmTimeout
 from drivers.controller_base import CommandTimeout, ControllerLost
 from drivers.controller_modbus import ModbusTransportError
-from hilcal.protocols.controller_states import ControllerState
+from hilcal.protocols.controller_states import MOTION_STATES, ControllerState
 from procedures import messages as m
 from procedures.journal import Journal
 
 log = structlog.get_logger(__name__)
 
 LINKS = ("controller", "cmm", "modbus")
-MOTION_STATES = (ControllerState.ENABLED, ControllerState.MOVING, ControllerState.IN_POSITION)
 
 
 class LinksSection(BaseModel):
