@@ -22,10 +22,10 @@ from scipy.spatial.transform import Rotation
 
 from drivers.cmm_serial import SerialCmm
 from hilcal.robot import default_robot
-from sim_devices.cmm_config import CmmServerConfig
-from sim_devices.cmm_server import start_cmm_server
-from sim_devices.config import RigConfig, load_errors
-from sim_devices.rig import SimulatedRig
+from sim_devices.cmm.config import CmmServerConfig
+from sim_devices.cmm.server import start_cmm_server
+from sim_devices.rig.config import RigConfig, load_errors
+from sim_devices.rig.rig import SimulatedRig
 
 NOISE_MM = 0.002
 COMMANDED = np.array([150.0, -100.0, 3200.0, 3.0, -2.0, 6.0])

@@ -25,12 +25,12 @@ import scipy
 import structlog
 from scipy.optimize import fsolve
 
-from hilcal.design import factorial_exchange, random_poses, verification_poses
 from hilcal.identification import IdentificationResult, identify
 from hilcal.kinematics import Geometry, forward_kinematics, inverse_kinematics
+from hilcal.planning.design import factorial_exchange, random_poses, verification_poses
 from hilcal.robot import Robot, default_robot, rotation_matrix
 from procedures.cli.simulated_recording import simulate_recording
-from sim_devices.config import RigConfig, load_errors
+from sim_devices.rig.config import RigConfig, load_errors
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC_PATH = ROOT / "docs" / "benchmarks.md"

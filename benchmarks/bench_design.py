@@ -10,7 +10,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hilcal import design as D
+from hilcal.planning import design as D
 from hilcal.robot import Robot, default_robot
 
 SEEDS = (0, 1, 2)

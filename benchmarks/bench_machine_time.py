@@ -25,12 +25,12 @@ import structlog
 from _docs import write_doc
 from scipy.spatial.transform import Rotation
 
-from hilcal.budget import BudgetError, budgeted_design
 from hilcal.identification import identify
 from hilcal.kinematics import Geometry, forward_kinematics, inverse_kinematics
-from hilcal.machine_time import MotionRules, MotionTiming, calibration_phases, estimate_route
 from hilcal.metrics import pose_errors
-from hilcal.ordering import drift_confounding, order_route
+from hilcal.planning.budget import BudgetError, budgeted_design
+from hilcal.planning.machine_time import MotionRules, MotionTiming, calibration_phases, estimate_route
+from hilcal.planning.ordering import drift_confounding, order_route
 from hilcal.robot import Robot, default_robot, load_robot
 from procedures.journal import Journal
 from procedures.plan import (
@@ -272,8 +272,8 @@ def main(argv: Sequence[str] | None = None) -> int:
              "The default plan (seed 0: 32 D-optimal poses, one measured 4 times, 24 verify poses measured before and "
              "after the upload), estimated with the station's default `[timing]` for the paper robot and with 20 mm/s, "
              "200 mm/s², 0.2 s settle, 20 s of probing and 0.1 s per move for the small hexapod. Leg travel: sum over "
-             "moves of the largest leg change. Drift absorbed: `hilcal.ordering.drift_confounding` of the measure rows "
-             "(share of a linear drift's leg signature the geometric model absorbs); max corr: largest "
+             "moves of the largest leg change. Drift absorbed: `hilcal.planning.ordering.drift_confounding` of the "
+             "measure rows (share of a linear drift's leg signature the geometric model absorbs); max corr: largest "
              "|correlation| of visit time with one pose coordinate.", "", *order, "",
              "## Time-budgeted designs", "",
              "Budgets as fractions of the full least-time plan. Predicted verify RMS: from the least-squares "

@@ -25,12 +25,12 @@ from _docs import write_doc
 from drivers.controller_can import ControllerCan
 from drivers.controller_modbus import ControllerParams
 from hilcal.robot import Robot, default_robot
-from sim_devices.can_bus_server import CanBusServer
-from sim_devices.can_peer import ControllerCanPeer
-from sim_devices.config import RigConfig, load_errors
-from sim_devices.controller import ControllerSimConfig, SimulatedController
-from sim_devices.controller_servers import start_controller_servers
-from sim_devices.rig import SimulatedRig
+from sim_devices.controller.can_bus_server import CanBusServer
+from sim_devices.controller.can_peer import ControllerCanPeer
+from sim_devices.controller.servers import start_controller_servers
+from sim_devices.controller.state_machine import ControllerSimConfig, SimulatedController
+from sim_devices.rig.config import RigConfig, load_errors
+from sim_devices.rig.rig import SimulatedRig
 
 TIME_SCALE = 1e6
 

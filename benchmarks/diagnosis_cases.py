@@ -16,13 +16,13 @@ from typing import Any
 import numpy as np
 import structlog
 
-from hilcal.design import factorial_exchange, verification_poses
-from hilcal.diagnosis import diagnose
+from hilcal.discovery.search import diagnose
 from hilcal.metrics import AccuracySummary
+from hilcal.planning.design import factorial_exchange, verification_poses
 from hilcal.recording import Recording
 from hilcal.robot import Robot, default_robot
 from procedures.cli.simulated_recording import simulate_with_truth
-from sim_devices.config import (
+from sim_devices.rig.config import (
     EFFECT_NAMES,
     EffectsConfig,
     RigConfig,
@@ -30,7 +30,7 @@ from sim_devices.config import (
     load_errors,
     random_errors,
 )
-from sim_devices.unlisted_concealed import concealed_unlisted_config
+from sim_devices.rig.unlisted_concealed import concealed_unlisted_config
 
 N_MEASURE = 32
 N_VERIFY = 24

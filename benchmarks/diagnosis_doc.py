@@ -105,7 +105,7 @@ def _pairs_section(summary: dict[str, Any]) -> list[str]:
 
 def _unlisted_section(summary: dict[str, Any]) -> list[str]:
     lines = ["## Physics the library does not list\n",
-             "Effects written in the simulator only (`sim_devices/unlisted_physics.py`), never in `hilcal`. "
+             "Effects written in the simulator only (`sim_devices/rig/unlisted_physics.py`), never in `hilcal`. "
              "*Unexplained* = `unexplained` among the effects; *first* = the answer `effect` is `unexplained`; "
              "*library named* = physics named that was not concealed. Gain = verify RMS after / before "
              f"(requirement ≤ {GAIN_TARGET:g}, i.e. halved); *within* = explanations claiming "

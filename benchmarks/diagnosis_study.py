@@ -32,8 +32,8 @@ from diagnosis_summary import summarize
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from sim_devices.config import EFFECT_NAMES
-from sim_devices.unlisted_concealed import UNLISTED_EFFECT_NAMES
+from sim_devices.rig.config import EFFECT_NAMES
+from sim_devices.rig.unlisted_concealed import UNLISTED_EFFECT_NAMES
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC_PATH = ROOT / "docs" / "diagnosis_study.md"
@@ -113,7 +113,7 @@ def setup_text(plan: StudyPlan) -> list[str]:
         f"{', '.join(f'{s:g}' for s in plan.single_scales)}, {plan.single_seeds} seeds each; plus "
         f"{plan.bare_seeds} seeds per effect at scale 1 written without cmd_* and temp_c.",
         f"- Pairs: every pair of the five library effects at scale 1, {plan.pair_seeds} seeds each.",
-        f"- Out-of-library: every effect of `sim_devices.unlisted_physics` "
+        f"- Out-of-library: every effect of `sim_devices.rig.unlisted_physics` "
         f"({', '.join(UNLISTED_EFFECT_NAMES)}), scales {', '.join(f'{s:g}' for s in plan.unlisted_scales)}, "
         f"{plan.unlisted_seeds} seeds; and each together with "
         f"{' or '.join(c[0] for c in COMBOS)} at scale 1.",

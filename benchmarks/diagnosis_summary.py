@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest
 
-from sim_devices.config import EFFECT_NAMES
+from sim_devices.rig.config import EFFECT_NAMES
 
 RATIO_TARGET = 1.5
 FALSE_ALARM_TARGET = 0.05

@@ -19,16 +19,16 @@ from rich.progress import Progress
 from scipy.spatial.transform import Rotation
 from scipy.stats import binomtest
 
-from hilcal.design import factorial_exchange, paper_pose_sets, random_poses, verification_poses
 from hilcal.identifiability import identifiability, leg_axis_modes
 from hilcal.identification import IdentificationError, IdentificationResult, identify, predict_poses
 from hilcal.kinematics import Geometry, KinematicsError, forward_kinematics, gravity_wrench, leg_forces, split_pose
 from hilcal.metrics import AccuracySummary, pose_errors
+from hilcal.planning.design import factorial_exchange, paper_pose_sets, random_poses, verification_poses
 from hilcal.pose_measurement import pose_from_spheres
 from hilcal.robot import Robot
 from procedures.cli.simulated_recording import simulate_recording
-from sim_devices.config import GeometryErrors, RigConfig, load_errors
-from sim_devices.rig import SimulatedRig
+from sim_devices.rig.config import GeometryErrors, RigConfig, load_errors
+from sim_devices.rig.rig import SimulatedRig
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC_PATH = ROOT / "docs" / "paper_study.md"

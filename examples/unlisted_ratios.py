@@ -1,6 +1,6 @@
 """Measure how far each concealed out-of-library effect pushes a geometry-only calibration above the noise floor.
 
-For each effect of sim_devices.unlisted_concealed and each seed: simulate the study's recording (paper robot,
+For each effect of sim_devices.rig.unlisted_concealed and each seed: simulate the study's recording (paper robot,
 Table 2 errors, 5 µm CMM noise, 32 D-optimal measure poses + 24 verification poses, 45 s per pose), calibrate
 the 42 geometric parameters by least squares on the measure rows (hilcal.identification.identify), predict the
 verify rows by forward kinematics, and compare with the floor:
@@ -33,15 +33,15 @@ import structlog
 from rich.console import Console
 from rich.progress import Progress
 
-from hilcal.design import factorial_exchange, verification_poses
 from hilcal.identification import identify, predict_poses
 from hilcal.metrics import AccuracySummary
+from hilcal.planning.design import factorial_exchange, verification_poses
 from hilcal.robot import Robot, default_robot, rotation_matrix
 from procedures.cli.simulated_recording import simulate_with_truth
-from sim_devices.config import EffectsConfig, GeometryErrors, RigConfig, load_errors
-from sim_devices.rig import SimulatedRig
-from sim_devices.unlisted_concealed import concealed_unlisted_config
-from sim_devices.unlisted_config import PARTLY_LISTED_EFFECT_NAMES, UNLISTED_EFFECT_NAMES, HookeJointOffsetConfig
+from sim_devices.rig.config import EffectsConfig, GeometryErrors, RigConfig, load_errors
+from sim_devices.rig.rig import SimulatedRig
+from sim_devices.rig.unlisted_concealed import concealed_unlisted_config
+from sim_devices.rig.unlisted_config import PARTLY_LISTED_EFFECT_NAMES, UNLISTED_EFFECT_NAMES, HookeJointOffsetConfig
 
 N_MEASURE = 32
 N_VERIFY = 24

@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 
 from drivers.controller_modbus import ParameterSet
-from hilcal import design
 from hilcal.calibration import CalibrationOutcome, calibrate
 from hilcal.compensation import Compensation, ControllerGeometry, compensate, plausibility
 from hilcal.kinematics import forward_kinematics, inverse_kinematics
+from hilcal.planning import design
 from hilcal.recording import Recording, recording_from_arrays
 from hilcal.robot import Robot
 from procedures import messages as m

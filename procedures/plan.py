@@ -3,7 +3,7 @@
 A plan is a JSON file; the same plan can be re-run later to check a machine. Every target is checked
 against the workspace and the leg limits (with the approach offset and a repeat's retreat) when the plan
 is made or loaded, before any motion. New plans visit their poses in the order of least machine time
-(``hilcal.ordering``) and measure one pose four times in a row (a noise yardstick for the diagnosis).
+(``hilcal.planning.ordering``) and measure one pose four times in a row (a noise yardstick for the diagnosis).
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from hilcal import design
 from hilcal.kinematics import Geometry, inverse_kinematics
-from hilcal.machine_time import (
+from hilcal.planning import design
+from hilcal.planning.machine_time import (
     MotionRules,
     MotionTiming,
     TimeEstimate,
@@ -28,7 +28,7 @@ from hilcal.machine_time import (
     move_costs,
     repeatable_pose,
 )
-from hilcal.ordering import RouteOrder, order_route
+from hilcal.planning.ordering import RouteOrder, order_route
 from hilcal.robot import POSE_AXES, LegLimitSpec, Robot
 
 REPEATS = 3
@@ -223,7 +223,7 @@ def waypoints(geom: Geometry, start_pose: np.ndarray, target_pose: np.ndarray, p
               ) -> list[tuple[str, np.ndarray]]:
     """Intermediate poses so that no leg moves more than max_step_mm at once, then an approach point.
 
-    Poses are interpolated in pose space (``hilcal.machine_time.interpolated_poses``). The last two moves
+    Poses are interpolated in pose space (``hilcal.planning.machine_time.interpolated_poses``). The last two moves
     are the approach point (every leg approach_mm shorter than at the target) and the target itself, so each
     pose is reached with every leg extending: joint backlash is the same at every pose. A repeat (start
     equal to target) first retreats (every leg repeat_retreat_mm shorter), so it leaves the pose and

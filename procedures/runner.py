@@ -26,11 +26,11 @@ import numpy as np
 import structlog
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from hilcal.machine_time import TimeEstimate
 from hilcal.metrics import AccuracySummary, pose_errors
+from hilcal.planning.machine_time import TimeEstimate
 from hilcal.recording import write_recording
+from hilcal.reports.timing import time_section
 from hilcal.robot import Robot, RobotFileError, load_robot
-from hilcal.time_report import time_section
 from procedures.calibration_procedure import (
     AFTER_PHASE,
     PRE_PHASES,
@@ -156,7 +156,7 @@ def machine_time_report(journal: Journal, plan: CalibrationPlan, robot: Robot, t
 def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robot, options: RunOptions,
                   result: ProcedureResult, started_at: str, journal: Journal, machine_time: dict | None = None
                   ) -> Path:
-    from hilcal.run_report import RunReport, write_run_report
+    from hilcal.reports.run import RunReport, write_run_report
 
     verify_rows = journal.measurements(("verify",))
     after_rows = result.after_rows

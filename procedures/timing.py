@@ -12,7 +12,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from hilcal.machine_time import MotionTiming
+from hilcal.planning.machine_time import MotionTiming
 
 
 class TimingSection(BaseModel):
@@ -27,7 +27,7 @@ class TimingSection(BaseModel):
     move_overhead_s: float = Field(default=0.5, ge=0, description="per move: command and in-position check")
 
     def timing(self, settle_s: float | None = None) -> MotionTiming:
-        """The timing for ``hilcal.machine_time`` (settle_s: a plan's own settle wait instead of the station's)."""
+        """The timing for ``hilcal.planning.machine_time`` (settle_s: a plan's own settle wait, not the station's)."""
         return MotionTiming(self.leg_speed_mm_s, self.leg_accel_mm_s2, self.settle_s if settle_s is None else settle_s,
                             self.cmm_s_per_pose, self.move_overhead_s)
 

@@ -1,7 +1,7 @@
 """Building blocks shared by the rig's configuration modules: strict pydantic base, switchable effects, per-leg values.
 
-Kept apart so the library effects (sim_devices.config) and the out-of-library effects
-(sim_devices.unlisted_config) validate their fields the same way without importing each other.
+Kept apart so the library effects (sim_devices.rig.config) and the out-of-library effects
+(sim_devices.rig.unlisted_config) validate their fields the same way without importing each other.
 """
 
 from __future__ import annotations

@@ -35,9 +35,9 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from hilcal.robot import Robot
-from sim_devices.cmm_config import CmmServerConfig
-from sim_devices.config import BUILTIN_ERROR_SETS, GeometryErrors, RigConfig, load_errors
-from sim_devices.controller import ControllerSimConfig
+from sim_devices.cmm.config import CmmServerConfig
+from sim_devices.controller.state_machine import ControllerSimConfig
+from sim_devices.rig.config import BUILTIN_ERROR_SETS, GeometryErrors, RigConfig, load_errors
 
 log = structlog.get_logger(__name__)
 

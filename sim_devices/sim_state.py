@@ -23,8 +23,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from hilcal.protocols.controller_states import Command, ControllerState, FaultCode, RefusalReason
 from hilcal.protocols.registers import ParamCommand, ParamStatus
 from hilcal.robot import Robot
-from sim_devices.controller import ControllerSimConfig, ControllerSnapshot, SimulatedController
-from sim_devices.rig import SimulatedRig
+from sim_devices.controller.state_machine import ControllerSimConfig, ControllerSnapshot, SimulatedController
+from sim_devices.rig.rig import SimulatedRig
 from sim_devices.sim_config import format_validation_errors
 
 log = structlog.get_logger(__name__)

@@ -17,10 +17,10 @@ import structlog
 from scipy.spatial.transform import Rotation
 
 from hilcal.robot import Robot, load_robot
-from sim_devices.cmm_server import CmmServerHandle, start_cmm_server
-from sim_devices.controller import SimulatedController
-from sim_devices.controller_servers import ControllerServers, serve_controller
-from sim_devices.rig import SimulatedRig
+from sim_devices.cmm.server import CmmServerHandle, start_cmm_server
+from sim_devices.controller.servers import ControllerServers, serve_controller
+from sim_devices.controller.state_machine import SimulatedController
+from sim_devices.rig.rig import SimulatedRig
 from sim_devices.sim_config import SimConfig
 from sim_devices.sim_state import DEFAULT_LOCK_TIMEOUT_S, PersistentController, StateStore, restore_rig
 

@@ -23,13 +23,13 @@ from pathlib import Path
 import numpy as np
 import structlog
 
-from hilcal.design import random_poses
 from hilcal.identification import identify, predict_poses
 from hilcal.metrics import AccuracySummary
 from hilcal.recording import Recording, write_recording
 from hilcal.robot import Robot, load_robot
+from hilcal.workspace import random_poses
 from procedures.cli.simulated_recording import RecordingOptions, second_session_start_s, simulate_with_truth
-from sim_devices.config import (
+from sim_devices.rig.config import (
     CmmPose,
     EffectsConfig,
     JointBacklashConfig,
@@ -37,7 +37,7 @@ from sim_devices.config import (
     SensorScaleConfig,
     random_errors,
 )
-from sim_devices.unlisted_config import ZeroShiftConfig
+from sim_devices.rig.unlisted_config import ZeroShiftConfig
 
 HERE = Path(__file__).resolve().parent
 ROBOT_FILE = HERE / "robot.toml"

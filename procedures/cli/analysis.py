@@ -87,7 +87,7 @@ def diagnose(
     seed: Annotated[int, typer.Option(help="seed of the bootstrap")] = 0,
 ) -> None:
     """Find the physics the geometric model leaves out: locate, name, model it, show the fit improve."""
-    from hilcal.diagnosis import diagnose as run_diagnosis
+    from hilcal.discovery.search import diagnose as run_diagnosis
 
     if not 0 < alpha < 1:
         fail("--alpha must lie in (0, 1)")
@@ -101,7 +101,7 @@ def diagnose(
         fail(str(e))
     page = None
     if report is not None:
-        from hilcal.diagnosis_report import write_report
+        from hilcal.reports.diagnosis import write_report
 
         page = write_report(diag, report)
     if as_json:
@@ -125,7 +125,7 @@ def diagnose(
 
 
 def _pose_set(rb: Robot, recording: Path | None, design_name: str, seed: int) -> np.ndarray:
-    from hilcal import design
+    from hilcal.planning import design
 
     if recording is not None:
         try:
@@ -172,7 +172,7 @@ def design(
     With --max-minutes: the most informative plan that fits, with its D-efficiency and predicted verify error
     (the paper's pose sets are then left out).
     """
-    from hilcal import design as dsg
+    from hilcal.planning import design as dsg
     from procedures.cli.plan_time import design_plan, timing_or_fail
 
     if noise_mm <= 0 or n_verify < 1 or (max_minutes is not None and max_minutes <= 0):

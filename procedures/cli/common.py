@@ -70,9 +70,9 @@ def accuracy_table(title: str, columns: list[tuple[str, AccuracySummary | None]]
 
 def write_simulated_recording(rb: Robot, out_path: Path, seed: int, errors: str, noise_mm: float) -> None:
     """32 D-optimal measurement poses and 24 verification poses on the in-process simulated rig, as a CSV."""
-    from hilcal import design as dsg
+    from hilcal.planning import design as dsg
     from procedures.cli.simulated_recording import simulate_recording
-    from sim_devices.config import RigConfig, load_errors
+    from sim_devices.rig.config import RigConfig, load_errors
 
     try:
         config = RigConfig(seed=seed, errors=load_errors(errors, rb), cmm_noise_mm=noise_mm)

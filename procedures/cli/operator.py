@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from hilcal.run_report import links_lines
+from hilcal.reports.run import links_lines
 from procedures.cli.common import EstimatorChoice, RobotOption, err, fail, out
 from procedures.cli.panel import DEFAULT_PORT, PortOption
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 from rich.table import Table
 
-from hilcal.budget import BudgetError, budgeted_design
-from hilcal.machine_time import TimeEstimate, format_minutes
+from hilcal.planning.budget import BudgetError, budgeted_design
+from hilcal.planning.machine_time import TimeEstimate, format_minutes
 from hilcal.robot import Robot
 from procedures.cli.common import fail, out
 from procedures.plan import (

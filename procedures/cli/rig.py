@@ -44,7 +44,7 @@ def demo(
         write_simulated_recording(rb, rec_path, seed, "table2", 0.005)
     rec = read_recording(rec_path, rb)
     from hilcal.kinematics import Geometry, forward_kinematics
-    from sim_devices.config import load_errors
+    from sim_devices.rig.config import load_errors
 
     ver = rec.select("verify")
     truth = Geometry.nominal(rb).perturbed(load_errors("table2", rb).to_vector())

@@ -22,8 +22,8 @@ import structlog
 from hilcal.pose_measurement import pose_from_spheres
 from hilcal.recording import Recording, recording_from_arrays
 from hilcal.robot import Robot
-from sim_devices.config import RigConfig
-from sim_devices.rig import SimulatedRig
+from sim_devices.rig.config import RigConfig
+from sim_devices.rig.rig import SimulatedRig
 
 log = structlog.get_logger(__name__)
 

@@ -63,9 +63,9 @@ def journal_options(folder: Path) -> dict[str, Any]:
 
 def diagnose_folder(folder: Path) -> dict[str, Any]:
     """Run the missing-physics diagnosis on the run's recording.csv; write RUN/diagnosis/; return its summary."""
-    from hilcal.diagnosis import diagnose
-    from hilcal.diagnosis_report import write_report
+    from hilcal.discovery.search import diagnose
     from hilcal.recording import read_recording
+    from hilcal.reports.diagnosis import write_report
     from hilcal.robot import load_robot
 
     robot = load_robot(journal_options(folder).get("robot_path"))

@@ -1,0 +1,170 @@
+"""What every leg sees at every row of a recording: stroke, load, joint angles, motion history, time, sessions.
+
+The missing-physics candidates (`hilcal.discovery.physics`) and the generic discrepancy terms
+(`hilcal.discovery.generic_terms`) are functions of these variables. Everything is computed from the recording and
+the robot file alone: loads from statics with the robot's moving mass at the measured poses, joint angles from the
+nominal geometry, the direction and size of each leg's last move from the row order (execution order).
+
+A recording may hold several sessions (e.g. measure rows one day, verify rows the next): a new session
+starts where the clock goes backwards or jumps by more than SESSION_GAP_S. The motion before the first
+row of a session is unknown, so the direction and size of that row's last move are unknown (0 and NaN).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+from hilcal.kinematics import Geometry, gravity_wrench, leg_forces, leg_vectors, split_pose
+from hilcal.recording import Recording
+from hilcal.robot import Robot
+
+SESSION_GAP_S = 4 * 3600.0
+"""A pause longer than this (or a clock that goes backwards) starts a new session: the machine may have
+been switched off, re-homed or left to cool, and the motion history is lost."""
+DIRECTION_DEADBAND_MM = 1e-3
+"""Leg moves smaller than this keep the previous direction of motion (transducer resolution)."""
+TEMPERATURE_WINDOW = 7
+
+
+def detect_sessions(time_s: np.ndarray, gap_s: float = SESSION_GAP_S) -> np.ndarray:
+    """Session number (0, 1, ...) of every row in execution order."""
+    t = np.asarray(time_s, dtype=float)
+    if t.size == 0:
+        return np.zeros(0, dtype=int)
+    dt = np.diff(t)
+    starts = (dt < 0) | (dt > gap_s)
+    return np.concatenate([[0], np.cumsum(starts)]).astype(int)
+
+
+def smooth_temperature(temp_c: np.ndarray, window: int = TEMPERATURE_WINDOW) -> np.ndarray:
+    """Local-linear smoothing over neighbouring rows (in execution order) of a noisy temperature reading.
+
+    Legs are tons of steel: their temperature changes over minutes, so row-to-row scatter in temp_c is
+    sensor noise, which would otherwise enter a thermal regressor (errors in variables).
+    """
+    n = len(temp_c)
+    if n < 5:
+        return np.asarray(temp_c, dtype=float)
+    return savgol_filter(np.asarray(temp_c, dtype=float), min(window, n - (1 - n % 2)), 1, mode="interp")
+
+
+def _joint_frames(directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors [6, 3] perpendicular to each leg's reference direction [6, 3]."""
+    up = np.where(np.abs(directions[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    e1 = np.cross(up, directions)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return e1, np.cross(directions, e1)
+
+
+def joint_angles(robot: Robot, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Leg direction at the base and at the platform joint, as two small angles (rad) from the home direction.
+
+    Returns (base [N, 6, 2], platform [N, 6, 2]). At the base the leg direction u is taken in the base frame;
+    at the platform in the platform frame (R^T u). Each is projected on two axes perpendicular to its
+    direction at the home pose: what a spherical or universal joint turns through.
+    """
+    geom = Geometry.nominal(robot)
+    R, t = split_pose(np.asarray(poses, dtype=float))
+    _, _, u = leg_vectors(geom, R, t)
+    R0, t0 = split_pose(robot.home)
+    _, _, u0 = leg_vectors(geom, R0, t0)
+    v = np.einsum("nji,nkj->nki", R, u)
+    v0 = u0 @ R0
+    out = []
+    for d, d0 in ((u, u0), (v, v0)):
+        e1, e2 = _joint_frames(d0)
+        out.append(np.stack([np.einsum("nkj,kj->nk", d, e1), np.einsum("nkj,kj->nk", d, e2)], axis=-1))
+    return out[0], out[1]
+
+
+def motion_history(legs_mm: np.ndarray, session: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Direction (+1 extending, -1 retracting, 0 unknown) and size (mm, NaN unknown) of each leg's last move.
+
+    The first row of every session has an unknown history. A leg that did not move (below the deadband)
+    keeps the direction and size of its previous move.
+    """
+    n = len(legs_mm)
+    direction = np.zeros((n, 6))
+    size = np.full((n, 6), np.nan)
+    for k in range(1, n):
+        if session[k] != session[k - 1]:
+            continue
+        step = legs_mm[k] - legs_mm[k - 1]
+        moved = np.abs(step) >= DIRECTION_DEADBAND_MM
+        direction[k] = np.where(moved, np.sign(step), direction[k - 1])
+        size[k] = np.where(moved, np.abs(step), size[k - 1])
+    return direction, size
+
+
+@dataclass(frozen=True)
+class EffectContext:
+    """Per-row variables of a recording (rows in execution order; [N, 6] arrays are per leg)."""
+
+    legs_mm: np.ndarray
+    stroke_mm: np.ndarray
+    force_kn: np.ndarray
+    direction: np.ndarray
+    move_mm: np.ndarray
+    base_angle_rad: np.ndarray
+    platform_angle_rad: np.ndarray
+    temp_c: np.ndarray | None
+    time_s: np.ndarray
+    session: np.ndarray
+    session_time_s: np.ndarray
+    pose: np.ndarray
+
+    @classmethod
+    def from_recording(cls, rec: Recording, robot: Robot) -> EffectContext:
+        """Loads from statics at the measured poses; motion history from the row order, per session."""
+        nominal = Geometry.nominal(robot)
+        force = leg_forces(nominal, rec.meas, gravity_wrench(robot, rec.meas)) / 1000.0
+        session = detect_sessions(rec.time_s)
+        direction, move = motion_history(rec.legs_mm, session)
+        base, platform = joint_angles(robot, rec.meas)
+        start = np.array([rec.time_s[session == s].min() for s in session])
+        temp = None
+        if rec.temp_c is not None:
+            temp = np.asarray(rec.temp_c, dtype=float).copy()
+            for s in np.unique(session):
+                rows = session == s
+                temp[rows] = smooth_temperature(temp[rows])
+        return cls(
+            legs_mm=rec.legs_mm, stroke_mm=rec.legs_mm - robot.l0, force_kn=force, direction=direction,
+            move_mm=move, base_angle_rad=base, platform_angle_rad=platform, temp_c=temp, time_s=rec.time_s,
+            session=session, session_time_s=rec.time_s - start, pose=rec.meas,
+        )
+
+    @classmethod
+    def at_poses(cls, robot: Robot, poses: np.ndarray) -> EffectContext:
+        """The pose-determined variables at planned poses (legs by nominal inverse kinematics; no history)."""
+        q = np.atleast_2d(np.asarray(poses, dtype=float))
+        nominal = Geometry.nominal(robot)
+        R, t = split_pose(q)
+        _, legs, _ = leg_vectors(nominal, R, t)
+        base, platform = joint_angles(robot, q)
+        n = len(q)
+        return cls(
+            legs_mm=legs, stroke_mm=legs - robot.l0,
+            force_kn=leg_forces(nominal, q, gravity_wrench(robot, q)) / 1000.0, direction=np.zeros((n, 6)),
+            move_mm=np.full((n, 6), np.nan), base_angle_rad=base, platform_angle_rad=platform, temp_c=None,
+            time_s=np.zeros(n), session=np.zeros(n, dtype=int), session_time_s=np.zeros(n), pose=q,
+        )
+
+    @property
+    def n(self) -> int:
+        return int(self.legs_mm.shape[0])
+
+    def rows(self, mask: np.ndarray) -> EffectContext:
+        """The same variables for a subset of rows (history stays as computed on the whole recording)."""
+        values = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            values[f.name] = None if value is None else value[mask]
+        return EffectContext(**values)
+
+    def per_leg(self, values: np.ndarray) -> np.ndarray:
+        """Broadcast a per-row quantity [N] to [N, 6]."""
+        return np.broadcast_to(np.asarray(values, dtype=float)[:, None], self.legs_mm.shape)

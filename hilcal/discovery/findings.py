@@ -1,0 +1,119 @@
+"""Where the mismatch lives and how it compares with the noise: located findings, residual/noise ratios, and the
+per-leg step between a measure session and a later verify-only session (re-homing or a zero shift).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from scipy.linalg import block_diag
+from scipy.stats import t as t_dist
+
+from hilcal.discovery.context import EffectContext
+from hilcal.discovery.regression import orth
+from hilcal.discovery.result import Finding, NoiseComparison, SessionShift
+from hilcal.kinematics import Geometry, inverse_jacobian, split_pose
+from hilcal.metrics import AccuracySummary
+from hilcal.recording import Recording
+from hilcal.robot import Robot
+
+FINDING_T = 3.5
+MAX_FINDINGS = 8
+SHIFT_ALPHA = 0.01
+
+
+def locate(ctx: EffectContext, rec: Recording, leg_res: np.ndarray) -> tuple[Finding, ...]:
+    """Correlate each leg's residual with every variable the leg sees; keep the strongest (|t| > 3.5)."""
+    drivers = {
+        "axial load": ctx.force_kn,
+        "stroke": ctx.stroke_mm,
+        "direction of last motion": ctx.direction,
+        "time": ctx.per_leg(ctx.time_s),
+        "base joint angle 1": ctx.base_angle_rad[..., 0],
+        "base joint angle 2": ctx.base_angle_rad[..., 1],
+    }
+    if ctx.temp_c is not None and np.ptp(ctx.temp_c) > 0:
+        drivers["temperature"] = ctx.per_leg(ctx.temp_c)
+    if np.unique(ctx.session).size > 1:
+        drivers["session"] = ctx.per_leg(ctx.session)
+    for axis, name in enumerate(("x", "y", "z")):
+        drivers[f"platform {name}"] = ctx.per_leg(rec.meas[:, axis])
+    findings = []
+    n = len(leg_res)
+    for name, values in drivers.items():
+        for i in range(6):
+            v = values[:, i]
+            if np.ptp(v) == 0 or np.ptp(leg_res[:, i]) == 0:
+                continue
+            rho = float(np.corrcoef(v, leg_res[:, i])[0, 1])
+            if abs(rho) * np.sqrt(n - 2) / np.sqrt(max(1 - rho**2, 1e-12)) > FINDING_T:
+                findings.append(Finding(i + 1, name, rho, f"leg {i + 1} residual follows {name} (r = {rho:+.2f})"))
+    findings.sort(key=lambda f: -abs(f.correlation))
+    return tuple(findings[:MAX_FINDINGS])
+
+
+def _leg_map(robot: Robot, poses: np.ndarray, length_mm: float) -> np.ndarray:
+    """Per pose, the 6 x 6 map from a pose residual (mm, mm at the platform radius) to leg-length residuals."""
+    R, t = split_pose(poses)
+    G = inverse_jacobian(Geometry.nominal(robot), R, t)
+    G[..., 3:] /= length_mm
+    return G
+
+
+def _ratios(r: np.ndarray, J: np.ndarray, sigma: np.ndarray, leg_map: np.ndarray) -> tuple[float, np.ndarray, float]:
+    """Observed / expected residual (total and per leg) under the noise covariance, for an LS fit with Jacobian J."""
+    m = r.size
+    IH = np.eye(m) - (Q := orth(J)) @ Q.T
+    C = IH @ sigma @ IH
+    G = block_diag(*leg_map)
+    rho = G @ r
+    C_rho = np.diag(G @ C @ G.T)
+    per_leg = np.array([np.sqrt(np.sum(rho[i::6] ** 2) / np.sum(C_rho[i::6])) for i in range(6)])
+    return float(np.sqrt(r @ r / np.trace(C))), per_leg, float(np.sqrt(np.trace(C) / m))
+
+
+def noise_comparison(robot: Robot, poses: np.ndarray, covariance: np.ndarray, geometry: tuple[np.ndarray, np.ndarray],
+                     final: tuple[np.ndarray, np.ndarray], length_mm: float) -> NoiseComparison:
+    """Residual RMS of the geometry-only and the final fit against what the noise alone would leave."""
+    sigma = block_diag(*covariance)
+    leg_map = _leg_map(robot, poses, length_mm)
+    ratio_geo, legs_geo, _ = _ratios(*geometry, sigma, leg_map)
+    ratio_fin, legs_fin, expected = _ratios(*final, sigma, leg_map)
+    r = final[0]
+    return NoiseComparison(ratio_geo, ratio_fin, legs_geo, legs_fin, float(np.sqrt(np.mean(r**2))), expected)
+
+
+def _holm(p: np.ndarray) -> np.ndarray:
+    order = np.argsort(p)
+    adjusted = np.empty_like(p)
+    running = 0.0
+    for rank, k in enumerate(order):
+        running = max(running, min(1.0, (len(p) - rank) * p[k]))
+        adjusted[k] = running
+    return adjusted
+
+
+def session_shift(ctx: EffectContext, measure: np.ndarray, leg_res: np.ndarray, rec: Recording,
+                  predict: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> SessionShift | None:
+    """Per-leg mean residual of verify rows in sessions without measure rows (t test per leg, Holm over legs).
+
+    Such a step is itself a finding: the machine was re-homed or a transducer's zero moved between the
+    sessions. It is estimated on the verify rows themselves, so the corrected verify error is not held out.
+    `predict(rows, leg_offsets_mm)` gives the model's poses for those rows with extra leg offsets.
+    """
+    later = ~measure & ~np.isin(ctx.session, np.unique(ctx.session[measure]))
+    n = int(later.sum())
+    if n < 3:
+        return None
+    res = leg_res[later]
+    mean = res.mean(axis=0)
+    se = res.std(axis=0, ddof=1) / np.sqrt(n)
+    p = _holm(2 * t_dist.sf(np.abs(mean) / np.maximum(se, 1e-300), n - 1))
+    legs = tuple(int(i) + 1 for i in np.flatnonzero(p < SHIFT_ALPHA))
+    corrected = None
+    if legs:
+        verify = ~measure
+        offsets = np.where(later[verify][:, None], mean[None, :], 0.0)
+        corrected = AccuracySummary.of(rec.meas[verify], predict(verify, offsets))
+    return SessionShift(mean, se, p, legs, corrected)

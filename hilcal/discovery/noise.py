@@ -1,0 +1,202 @@
+"""The absolute noise yardstick: how large the measurement noise of a recording is, in mm, and where that is known from.
+
+A residual can only be called "within noise" against a noise level that does not come from the residuals
+themselves. Sources, in the order they are trusted:
+1. a value the user states (`--cmm-sigma-mm`): standard uncertainty of one sphere-centre coordinate;
+2. the robot file's `cmm.sphere_sigma_mm`;
+3. the recording's `sphere_fit_rms_mm` column: every pose is registered from three or more spheres, and the
+   registration residual measures the sphere-centre noise independently of the kinematic model;
+4. repeated poses in the recording: the scatter of the model residuals between repeats of one pose.
+Sphere-centre noise is propagated to the pose through the same registration the tool uses
+(`hilcal.pose_measurement`), giving a 6 x 6 covariance per pose in the residual metric (mm, rotations as
+mm at the platform's characteristic length). Every available source is reported, so they can be compared.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import integrate
+from scipy.stats import chi2
+
+from hilcal.discovery.context import detect_sessions
+from hilcal.error_models import pose_difference
+from hilcal.kinematics import split_pose
+from hilcal.pose_measurement import pose_from_spheres
+from hilcal.recording import Recording
+from hilcal.robot import Robot
+
+REPEAT_LEG_TOLERANCE_MM = 0.005
+"""Rows whose six reported leg lengths agree to 5 µm (and no commanded pose tells otherwise) are repeats."""
+PERTURBATION_MM = 1e-3
+
+
+@dataclass(frozen=True)
+class NoiseEstimate:
+    """One estimate of the pose noise of a recording."""
+
+    source: str
+    covariance: np.ndarray
+    """[N, 6, 6] pose-noise covariance of every row in the residual metric (mm, mm at the platform radius)."""
+    sphere_sigma_mm: float | None
+    dof: float | None
+    """Degrees of freedom behind an estimated level; None for a stated one."""
+
+    @property
+    def position_mm(self) -> float:
+        """RMS length of the 3-D position noise of one measured pose, mm (the verify-error floor)."""
+        return float(np.sqrt(np.mean(np.trace(self.covariance[:, :3, :3], axis1=1, axis2=2))))
+
+    def describe(self) -> str:
+        sigma = "" if self.sphere_sigma_mm is None else f"sphere-centre sigma {self.sphere_sigma_mm * 1000:.2f} µm, "
+        dof = "" if self.dof is None else f", {self.dof:.0f} degrees of freedom"
+        return f"{sigma}pose position noise {self.position_mm * 1000:.2f} µm RMS (source: {self.source}{dof})"
+
+
+@dataclass(frozen=True)
+class NoiseLevel:
+    """The yardstick used (None when no source is available) and every estimate found."""
+
+    chosen: NoiseEstimate | None
+    estimates: tuple[NoiseEstimate, ...]
+    notes: tuple[str, ...] = ()
+
+    def to_json(self) -> dict:
+        def one(e: NoiseEstimate) -> dict:
+            return {"source": e.source, "position_mm": e.position_mm, "sphere_sigma_mm": e.sphere_sigma_mm,
+                    "dof": e.dof}
+
+        return {
+            "known": self.chosen is not None,
+            "position_mm": None if self.chosen is None else self.chosen.position_mm,
+            "source": None if self.chosen is None else self.chosen.source,
+            "sphere_sigma_mm": None if self.chosen is None else self.chosen.sphere_sigma_mm,
+            "estimates": [one(e) for e in self.estimates],
+            "notes": list(self.notes),
+        }
+
+
+def sphere_noise_covariance(robot: Robot, poses: np.ndarray, sigma_mm: float, length_mm: float) -> np.ndarray:
+    """[N, 6, 6] pose covariance from isotropic sphere-centre noise, propagated through the registration.
+
+    The CMM frame cancels in the registration and the noise is isotropic, so the base frame is used as
+    the CMM frame. The Jacobian is taken by central differences of `pose_from_spheres`.
+    """
+    q = np.atleast_2d(np.asarray(poses, dtype=float))
+    R, t = split_pose(q)
+    platform = np.einsum("nij,kj->nki", R, robot.platform_spheres) + t[:, None, :]
+    base = np.broadcast_to(robot.base_spheres, (len(q), *robot.base_spheres.shape))
+    points = np.concatenate([platform, base], axis=1)
+    n_p = robot.platform_spheres.shape[0]
+    n_coords = points.shape[1] * 3
+    jac = np.empty((len(q), 6, n_coords))
+    for j in range(n_coords):
+        step = np.zeros(points.shape[1:]).reshape(-1)
+        step[j] = PERTURBATION_MM
+        step = step.reshape(points.shape[1:])
+        plus = pose_from_spheres((points + step)[:, :n_p], (points + step)[:, n_p:], robot).pose
+        minus = pose_from_spheres((points - step)[:, :n_p], (points - step)[:, n_p:], robot).pose
+        jac[:, :, j] = pose_difference(plus, minus, length_mm) / (2 * PERTURBATION_MM)
+    return sigma_mm**2 * jac @ np.swapaxes(jac, 1, 2)
+
+
+def _expected_max_rms_squared(robot: Robot) -> float:
+    """E[sphere_fit_rms_mm^2] / sigma^2 for the column's definition: the larger of the two registrations' RMS.
+
+    A rigid registration of M spheres leaves 3M - 6 degrees of freedom, so RMS^2 = sigma^2 chi2(3M-6) / M.
+    """
+    dists = []
+    for m in (robot.platform_spheres.shape[0], robot.base_spheres.shape[0]):
+        dof = 3 * m - 6
+        dists.append((dof, m))
+
+    def cdf(x: float) -> float:
+        return float(np.prod([chi2.cdf(x * m, dof) if dof > 0 else 1.0 for dof, m in dists]))
+
+    value, _ = integrate.quad(lambda x: 1.0 - cdf(x), 0.0, np.inf, limit=200)
+    return float(value)
+
+
+def sigma_from_sphere_fit(rms_mm: np.ndarray, robot: Robot) -> tuple[float, float]:
+    """Sphere-centre sigma (mm) and its degrees of freedom from the per-row registration RMS column."""
+    values = np.asarray(rms_mm, dtype=float)
+    values = values[np.isfinite(values)]
+    factor = _expected_max_rms_squared(robot)
+    dof = values.size * 3 * (min(robot.platform_spheres.shape[0], robot.base_spheres.shape[0]) - 2)
+    return float(np.sqrt(np.mean(values**2) / factor)), float(dof)
+
+
+def find_repeats(rec: Recording) -> list[np.ndarray]:
+    """Groups (>= 2 rows, one session) of rows measured at the same pose: same commanded pose, else same legs."""
+    session = detect_sessions(rec.time_s)
+    has_cmd = np.all(np.isfinite(rec.cmd), axis=1)
+    unused = np.ones(rec.n, dtype=bool)
+    groups = []
+    for k in range(rec.n):
+        if not unused[k]:
+            continue
+        same = (session == session[k]) & unused
+        same &= np.max(np.abs(rec.legs_mm - rec.legs_mm[k]), axis=1) <= REPEAT_LEG_TOLERANCE_MM
+        if has_cmd[k]:
+            same &= ~has_cmd | (np.max(np.abs(rec.cmd - rec.cmd[k]), axis=1) <= 1e-6)
+        rows = np.flatnonzero(same)
+        if rows.size >= 2:
+            groups.append(rows)
+            unused[rows] = False
+    return groups
+
+
+def noise_from_repeats(residuals: np.ndarray, groups: list[np.ndarray]) -> tuple[np.ndarray, float] | None:
+    """Pooled within-group covariance [6, 6] of model residuals [N, 6] over repeat groups, and its dof.
+
+    Residuals rather than raw poses: what the model predicts cancels between repeats even if the legs
+    differ slightly, so only the measurement's scatter (and the machine's repeatability) remains.
+    """
+    dof = sum(g.size - 1 for g in groups)
+    if dof < 2:
+        return None
+    dev = np.concatenate([residuals[g] - residuals[g].mean(axis=0) for g in groups])
+    return dev.T @ dev / dof, float(dof)
+
+
+def noise_yardstick(rec: Recording, robot: Robot, residuals: np.ndarray, length_mm: float,
+                    cmm_sigma_mm: float | None = None) -> NoiseLevel:
+    """Every available noise estimate for the rows of rec, and the one to trust (see the module docstring).
+
+    `residuals` [N, 6] are the geometric model's pose residuals of every row (residual metric), used for
+    repeats.
+    """
+    estimates: list[NoiseEstimate] = []
+
+    def from_sigma(sigma: float, source: str, dof: float | None) -> NoiseEstimate:
+        return NoiseEstimate(source, sphere_noise_covariance(robot, rec.meas, sigma, length_mm), sigma, dof)
+
+    if cmm_sigma_mm is not None:
+        estimates.append(from_sigma(cmm_sigma_mm, "--cmm-sigma-mm", None))
+    if robot.sphere_sigma_mm is not None:
+        estimates.append(from_sigma(robot.sphere_sigma_mm, "robot file cmm.sphere_sigma_mm", None))
+    column = rec.extra.get("sphere_fit_rms_mm")
+    if column is not None and column.dtype.kind == "f" and np.isfinite(column).sum() >= 3:
+        sigma, dof = sigma_from_sphere_fit(column, robot)
+        if sigma > 0:
+            estimates.append(from_sigma(sigma, "sphere_fit_rms_mm column", dof))
+    groups = find_repeats(rec)
+    repeats = noise_from_repeats(residuals, groups)
+    if repeats is not None:
+        cov, dof = repeats
+        estimates.append(NoiseEstimate(f"{len(groups)} repeated pose(s) in the recording",
+                                       np.broadcast_to(cov, (rec.n, 6, 6)).copy(), None, dof))
+    notes = []
+    if not estimates:
+        return NoiseLevel(None, (), ("noise level unknown: relative tests only (give --cmm-sigma-mm, the robot "
+                                     "file's cmm.sphere_sigma_mm, a sphere_fit_rms_mm column or repeated poses)",))
+    chosen = estimates[0]
+    for other in estimates[1:]:
+        ratio = other.position_mm / chosen.position_mm
+        if ratio > 1.5 or ratio < 1 / 1.5:
+            notes.append(f"{other.source} gives {ratio:.2f}x the noise of {chosen.source} "
+                         f"({other.position_mm * 1000:.2f} vs {chosen.position_mm * 1000:.2f} µm)"
+                         + (": the machine's repeatability or drift between repeats exceeds the CMM noise"
+                            if "repeat" in other.source and ratio > 1 else ""))
+    return NoiseLevel(chosen, tuple(estimates), tuple(notes))

@@ -1,0 +1,123 @@
+"""`hilcal diagnose --report DIR`: plots, diagnosis.json, per-leg correction tables (CSV), proposed extra poses
+(CSV) and a self-contained index.html.
+
+Correction tables give, for an unexplained term, the leg-length correction (mm) to ADD to the reported length
+(geometric length = reported + dl0 + correction) against the variable, with its 95 % band.
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import html
+import json
+from pathlib import Path
+
+import numpy as np
+
+from hilcal.discovery.explain import title_of
+from hilcal.discovery.result import Diagnosis, Shape
+from hilcal.reports import diagnosis_plots as plots
+from hilcal.robot import POSE_AXES
+
+
+def _slug(key: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in key).strip("_")
+
+
+def write_correction_table(shape: Shape, path: Path) -> None:
+    """One row per grid point: the variable(s), the correction and its 95 % band (mm)."""
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["leg", *shape.columns, "correction_mm", "band_low_mm", "band_high_mm"])
+        for x, c, b in zip(shape.grid, shape.correction_mm, shape.band_mm, strict=True):
+            w.writerow([shape.leg + 1, *(f"{v:.6g}" for v in x), f"{c:.6f}", f"{c - b:.6f}", f"{c + b:.6f}"])
+
+
+def write_poses(poses: np.ndarray, path: Path) -> None:
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(POSE_AXES)
+        for pose in poses:
+            w.writerow([f"{v:.4f}" for v in pose])
+
+
+def _img(path: Path) -> str:
+    if not path.exists():
+        return ""
+    data = base64.b64encode(path.read_bytes()).decode()
+    return f'<img alt="{html.escape(path.name)}" src="data:image/png;base64,{data}">'
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in row) + "</tr>" for row in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _fmt(v: float | None, spec: str = ".3g") -> str:
+    return "" if v is None or not np.isfinite(v) else format(v, spec)
+
+
+def write_report(diag: Diagnosis, out_dir: Path) -> Path:
+    """Write every file of the report into out_dir; return the page path."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    plots.leg_plot(diag, out_dir / "legs.png")
+    plots.time_plot(diag, out_dir / "time.png")
+    plots.waterfall_plot(diag, out_dir / "steps.png")
+    plots.noise_plot(diag, out_dir / "noise.png")
+    (out_dir / "diagnosis.json").write_text(json.dumps(diag.to_json(), indent=2))
+    shape_html = []
+    for shape in diag.shapes:
+        slug = _slug(shape.group.key if shape.group.leg is not None else f"{shape.group.key}_leg{shape.leg + 1}")
+        plots.shape_plot(diag, shape, out_dir / f"shape_{slug}.png")
+        write_correction_table(shape, out_dir / f"correction_{slug}.csv")
+        extra = ""
+        if shape.proposed_poses is not None and len(shape.proposed_poses):
+            write_poses(shape.proposed_poses, out_dir / f"extra_poses_{slug}.csv")
+            extra = f"<p>Proposed extra poses: <code>extra_poses_{slug}.csv</code> ({len(shape.proposed_poses)})</p>"
+        name = shape.group.title if shape.group.leg is not None else f"leg {shape.leg + 1}: {shape.group.title}"
+        shape_html.append(f"<h3>{html.escape(name)}</h3><p>{html.escape(shape.group.sentence)}. "
+                          f"Correction table: <code>correction_{slug}.csv</code>. "
+                          f"{'' if shape.pinned else html.escape('Not pinned down: ' + shape.why_not_pinned)}</p>"
+                          f"{extra}{_img(out_dir / f'shape_{slug}.png')}")
+    steps = _table(
+        ["step", "group", "kind", "params", "F", "p (family-wise)", "CV before µm", "CV after µm", "verify RMS mm",
+         "removed"],
+        [[str(s.index), s.key, s.kind, str(s.n_params), _fmt(s.f_statistic, ".1f"), _fmt(s.p_value),
+          _fmt(s.cv_before_mm * 1000, ".2f"), _fmt(s.cv_rms_mm * 1000, ".2f"),
+          "" if s.verify is None else f"{s.verify.position_mm.rms:.4f}", ", ".join(s.removed)] for s in diag.steps],
+    )
+    candidates = _table(
+        ["candidate", "testable", "F", "p (family-wise)", "CV µm", "chosen", "note"],
+        [[c.name, "yes" if c.applicable else "no", _fmt(c.f_statistic, ".2f"), _fmt(c.p_value),
+          _fmt(c.cv_rms_mm * 1000, ".2f"), "yes" if c.selected else "", c.rejected or c.reason or ""]
+         for c in diag.candidates],
+    )
+    noise_rows = [[e.source, f"{e.position_mm * 1000:.2f}", _fmt(e.sphere_sigma_mm and e.sphere_sigma_mm * 1000, ".2f"),
+                   _fmt(e.dof, ".0f")] for e in diag.noise.estimates]
+    noise = _table(["source", "pose position noise µm RMS", "sphere-centre sigma µm", "dof"], noise_rows) \
+        if noise_rows else "<p>noise level unknown: relative tests only</p>"
+    params = _table(["parameter", "value", "std error (cluster-robust)"],
+                    [[k, f"{v:+.4g}", _fmt(diag.std_errors.get(k), ".2g")] for k, v in diag.parameters.items()])
+
+    def acc(summary: object) -> str:
+        return "n/a" if summary is None else ", ".join(f"{k} {v:.4f}" for k, v in summary.brief().items())
+
+    findings = "".join(f"<li>{html.escape(f.text)}</li>" for f in diag.findings) or "<li>none stand out</li>"
+    title = ", ".join(title_of(e) for e in diag.effects) or "none"
+    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>hilcal diagnosis: {html.escape(title)}</title>
+<style>body{{font-family:sans-serif;max-width:1200px;margin:2em auto}}img{{max-width:100%;display:block;margin:1em 0}}
+table{{border-collapse:collapse;margin:.5em 0}}td,th{{border:1px solid #ccc;padding:3px 8px;text-align:right}}</style>
+</head><body><h1>Missing physics: {html.escape(title)}</h1><p>{html.escape(diag.explanation)}</p>
+<h2>Held-out verification poses</h2><p>geometry only: {acc(diag.before)}<br>final model: {acc(diag.after)}</p>
+<h2>Selection steps</h2>{steps}{_img(out_dir / "steps.png")}
+<h2>Noise yardstick</h2>{noise}{_img(out_dir / "noise.png")}
+<h2>Unexplained terms</h2>{''.join(shape_html) or '<p>none</p>'}
+<h2>Fitted effect parameters</h2>{params}
+<h2>Library candidates (first step)</h2>{candidates}
+<h2>Where the mismatch lives</h2><ul>{findings}</ul>{_img(out_dir / "legs.png")}{_img(out_dir / "time.png")}
+</body></html>"""
+    path = out_dir / "index.html"
+    path.write_text(page)
+    return path
