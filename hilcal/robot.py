@@ -10,7 +10,7 @@ import tomllib
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -115,6 +115,22 @@ class CmmSpec(_Strict):
         return v
 
 
+ActuatorKind = Literal["hydraulic", "electric"]
+TransducerKind = Literal["linear", "motor_encoder"]
+DEFAULT_TRANSDUCER: dict[str, str] = {"hydraulic": "linear", "electric": "motor_encoder"}
+"""The usual leg-length sensor of each actuator kind, when the robot file names only the kind."""
+
+
+class ActuatorSpec(_Strict):
+    """What the legs are: it decides which physics can be missing (oil columns only in hydraulic legs, ...)."""
+
+    kind: ActuatorKind = Field(description="hydraulic cylinders or electric (screw or belt) drives")
+    transducer: TransducerKind | None = Field(
+        default=None, description="linear: a length sensor on the leg (magnetostrictive, LVDT, linear scale); "
+        "motor_encoder: motor counts through a screw, belt or gears. Default: linear for hydraulic legs, "
+        "motor_encoder for electric ones")
+
+
 class RobotSpec(_Strict):
     """The whole robot file."""
 
@@ -125,6 +141,7 @@ class RobotSpec(_Strict):
     leg_limits: LegLimitSpec
     mass: MassSpec
     cmm: CmmSpec
+    actuators: ActuatorSpec | None = Field(default=None, description="the legs' kind; None: unknown")
 
     @model_validator(mode="after")
     def _consistent(self) -> RobotSpec:
@@ -237,6 +254,19 @@ class Robot:
     def sphere_sigma_mm(self) -> float | None:
         """The CMM's stated sphere-centre uncertainty (mm), if the robot file gives one."""
         return self.spec.cmm.sphere_sigma_mm
+
+    @property
+    def actuator_kind(self) -> str | None:
+        """'hydraulic', 'electric', or None when the robot file does not say."""
+        return None if self.spec.actuators is None else self.spec.actuators.kind
+
+    @property
+    def transducer(self) -> str | None:
+        """'linear' or 'motor_encoder' (the default of the actuator kind), or None when unknown."""
+        act = self.spec.actuators
+        if act is None:
+            return None
+        return act.transducer or DEFAULT_TRANSDUCER[act.kind]
 
     @property
     def characteristic_length_mm(self) -> float:

@@ -7,8 +7,12 @@ checks that the controller answers, and closes everything again on exit or if an
 Example::
 
     robot = "robots/plant3.toml"       # omit for the built-in paper Table 1 robot
+    name = "bay 2 station"             # this calibration station (optional)
     records = "records"                # where runs are recorded (optional)
     operator = "J. Smith"              # optional
+
+    [machine]                          # the machine on the station (optional)
+    serial = "DMS-0042"                # its serial number: with the robot file name, the machine's identity
 
     [can]                              # passed unchanged to can.Bus(**can)
     interface = "socketcan"
@@ -155,10 +159,18 @@ class MotionSection(_Strict):
     position_tolerance_mm: float = Field(default=0.01, gt=0, description="feedback vs setpoint at IN_POSITION")
 
 
+class MachineSection(_Strict):
+    """The machine under calibration: its serial number (with the robot file's name, its identity in records)."""
+
+    serial: str | None = Field(default=None, min_length=1, max_length=100, description="the machine's serial")
+
+
 class StationConfig(_Strict):
     """Where the devices of one calibration station are (see the module docstring for a TOML example)."""
 
     robot: Path | None = Field(default=None, description="robot TOML file; None: the built-in paper Table 1 robot")
+    name: str | None = Field(default=None, min_length=1, max_length=100, description="this calibration station")
+    machine: MachineSection = Field(default_factory=MachineSection)
     can: CanSection
     modbus: ModbusSection
     cmm: CmmSection
