@@ -21,7 +21,7 @@ lint: venv
 	$(BIN)/ruff check .
 
 test: lint
-	$(BIN)/pytest
+	$(BIN)/pytest -n auto --dist loadfile --no-loadscope-reorder --durations=25
 
 bench: venv
 	MPLBACKEND=Agg $(BIN)/python benchmarks/run_all.py

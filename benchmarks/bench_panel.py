@@ -21,7 +21,6 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from _docs import write_doc  # noqa: E402
-
 from tests.browser_support import chromium, free_port, latency_summary, text, wait_for  # noqa: E402
 
 SHOT = ROOT / "docs" / "img" / "panel_midrun.png"

@@ -355,7 +355,7 @@ class CmmInterface(abc.ABC):
                 f"(need {cfg.min_points}; outlier threshold {threshold:.4f} mm) after {len(records)} touches",
                 self._finalise_records(records, robust.fit.centre_mm, radius_mm),
             )
-        fit = fit_sphere(used, radius_mm, robust.fit.centre_mm)
+        fit = robust.fit  # the fixed-radius fit over exactly the used points, in the same order
         final = self._finalise_records(records, fit.centre_mm, radius_mm)
         try:
             free = fit_sphere(used, None, fit.centre_mm)

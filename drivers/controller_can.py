@@ -59,6 +59,9 @@ REOPEN_AFTER_ERRORS = 3
 """Consecutive receive errors after which the driver opens the CAN interface again."""
 REOPEN_WAIT_S = 0.5
 """Rest after a failed re-open before the next try."""
+SLCAN_READ_TIMEOUT_S = 0.02
+"""Serial read timeout of python-can's slcan interface unless bus_config gives one: its default (1 ms) wakes the
+reader thread a thousand times a second while the line is quiet; a frame is read as soon as it arrives either way."""
 FEEDBACK_NAMES = ("FeedbackL12", "FeedbackL34", "FeedbackL56")
 SETPOINT_NAMES = ("SetpointL12", "SetpointL34", "SetpointL56")
 
@@ -90,9 +93,10 @@ def _fault(value: int) -> FaultCode:
 
 
 class ControllerCan(ControllerInterface):
-    """The servo controller over CAN; ``bus_config`` goes to ``can.Bus(**bus_config)`` unchanged.
+    """The servo controller over CAN; ``bus_config`` goes to ``can.Bus(**bus_config)`` (slcan: see below).
 
-    Example: ``ControllerCan({"interface": "slcan", "channel": "/dev/ttyACM0", "bitrate": 500000}, robot)``.
+    Example: ``ControllerCan({"interface": "slcan", "channel": "/dev/ttyACM0", "bitrate": 500000}, robot)``. For slcan
+    without a ``timeout`` the driver adds SLCAN_READ_TIMEOUT_S.
     """
 
     def __init__(
@@ -128,8 +132,10 @@ class ControllerCan(ControllerInterface):
         self._was_alive = False
         self._stop = threading.Event()
         self._bus_config = dict(bus_config)
+        if self._bus_config.get("interface") == "slcan":
+            self._bus_config.setdefault("timeout", SLCAN_READ_TIMEOUT_S)
         try:
-            self._bus = can.Bus(**bus_config)
+            self._bus = can.Bus(**self._bus_config)
         except (can.CanError, OSError, ValueError) as err:
             raise ControllerError(f"cannot open the CAN interface {bus_config!r}: {err}") from err
         self._closed = False
@@ -357,11 +363,20 @@ class ControllerCan(ControllerInterface):
                 f"{command.name} refused in state {state.name}: {reason.name} (not sent)", reason, state, "driver"
             )
 
-    def _wait_ack(self, command: Command, counter: int) -> tuple[RefusalReason, ControllerState, float]:
+    def _wait_ack(self, command: Command, counter: int, sent_s: float) -> tuple[RefusalReason, ControllerState, float]:
+        """The acknowledgement of the command sent at sent_s with this counter.
+
+        An acknowledgement received before sent_s answers an earlier command with the same 4-bit counter whose
+        wait timed out (it came late): it is discarded, so it cannot pass for this command's.
+        """
         deadline = time.monotonic() + self.ack_timeout_s
         key = (int(command), counter)
         with self._cond:
-            while key not in self._acks:
+            while key not in self._acks or self._acks[key][2] < sent_s:
+                if key in self._acks:
+                    log.warning("can_stale_ack_discarded", command=command.name, counter=counter)
+                    del self._acks[key]
+                    continue
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     raise CommandTimeout(
@@ -375,8 +390,9 @@ class ControllerCan(ControllerInterface):
         with self._command_lock:
             self._refuse_locally(command)
             counter = self._next_counter("Command")
+            sent_s = time.monotonic()
             self._send("Command", {"CommandCode": int(command)}, counter)
-            reason, state, _ = self._wait_ack(command, counter)
+            reason, state, _ = self._wait_ack(command, counter, sent_s)
         if reason is not RefusalReason.ACCEPTED:
             raise CommandRefused(f"controller refused {command.name} in state {state.name}: {reason.name}",
                                  reason, state, "controller")
@@ -421,10 +437,11 @@ class ControllerCan(ControllerInterface):
         with self._command_lock:
             self._refuse_locally(Command.SETPOINT)
             counter = self._next_counter("Setpoint")
+            sent_s = time.monotonic()
             for k, name in enumerate(SETPOINT_NAMES):
                 self._send(name, {f"Leg{2 * k + 1}Setpoint": um[2 * k], f"Leg{2 * k + 2}Setpoint": um[2 * k + 1]},
                            counter)
-            reason, state, acked_s = self._wait_ack(Command.SETPOINT, counter)
+            reason, state, acked_s = self._wait_ack(Command.SETPOINT, counter, sent_s)
         if reason is not RefusalReason.ACCEPTED:
             raise CommandRefused(f"controller refused the setpoint in state {state.name}: {reason.name}",
                                  reason, state, "controller")

@@ -189,8 +189,9 @@ def _solve_minimax_lp(r0: np.ndarray, J: np.ndarray, bound: float | None) -> tup
     return res.x[:p] / c, float(res.x[-1])
 
 
-def _identify_ls(fun: Callable, p: int, method: Method, max_nfev: int) -> tuple[np.ndarray, int, bool, str]:
-    x0 = np.zeros(p)
+def _identify_ls(fun: Callable, p: int, method: Method, max_nfev: int, x0: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, int, bool, str]:
+    x0 = np.zeros(p) if x0 is None else np.asarray(x0, dtype=float)
     if method == "one_step":
         r0, J = fun(x0)
         c = _column_scale(J)
@@ -256,13 +257,15 @@ def identify(
     tol: float = 1e-9,
     extra_regressors: np.ndarray | None = None,
     extra_names: tuple[str, ...] = (),
+    x0: np.ndarray | None = None,
 ) -> IdentificationResult:
     """Identify geometric errors from reported leg lengths and measured poses (mm, deg).
 
     `length_mm` converts rotation residuals (rad) to mm; default: the platform's characteristic
     length. The paper's 60-parameter model is linear, so it supports the forward one-step method only.
     `extra_regressors` [N, 6, q] adds effects linear in their parameters (named by `extra_names`) to the
-    rigid model: geometric length = reported + dl0 + phi @ theta.
+    rigid model: geometric length = reported + dl0 + phi @ theta. `x0` starts the iterated least squares there
+    (e.g. a previous fit) instead of at the nominal geometry.
     """
     if model not in MODELS:
         raise IdentificationError(f"unknown model {model!r}: use one of {sorted(MODELS)}")
@@ -288,7 +291,9 @@ def identify(
     else:
         fun = residual_function(robot, L, q, formulation, lc, extra_regressors)
     if estimator == "ls":
-        x, nit, converged, message = _identify_ls(fun, len(names), method, max_nfev=max_iter)
+        if x0 is not None and np.shape(x0) != (len(names),):
+            raise IdentificationError(f"x0 must have {len(names)} values, got {np.shape(x0)}")
+        x, nit, converged, message = _identify_ls(fun, len(names), method, max_nfev=max_iter, x0=x0)
     else:
         x, nit, converged, message = _identify_linf(fun, len(names), method, max_iter, tol)
     r, J = fun(x)

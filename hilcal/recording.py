@@ -34,6 +34,8 @@ TEMP_RANGE_C = (-50.0, 150.0)
 LEG_MARGIN_MM = 50.0
 POSITION_MARGIN_MM = 200.0
 ANGLE_MARGIN_DEG = 10.0
+SESSION_GAP_S = 4 * 3600.0
+"""A new session starts where time_s goes backwards or jumps by more than this (docs/recording-format.md)."""
 
 
 class RecordingError(ValueError):
@@ -90,7 +92,7 @@ class Recording:
     def select(self, phase: str) -> Recording:
         """The rows of one phase (``measure`` or ``verify``), in their original order."""
         if phase not in PHASES:
-            raise ValueError(f"unknown phase {phase!r}; expected one of {', '.join(PHASES)}")
+            raise ValueError(f"unknown phase {_show(phase)}; expected one of {', '.join(PHASES)}")
         keep = self.phase == phase
         return Recording(
             seq=self.seq[keep],
@@ -101,6 +103,22 @@ class Recording:
             meas=self.meas[keep],
             extra={k: v[keep] for k, v in self.extra.items()},
         )
+
+
+def session_numbers(time_s: Sequence[float] | np.ndarray, gap_s: float = SESSION_GAP_S) -> np.ndarray:
+    """Session (0, 1, ...) of every row in execution order: the format's rule, a clock that goes back or jumps."""
+    t = np.asarray(time_s, dtype=float)
+    if t.size == 0:
+        return np.zeros(0, dtype=int)
+    dt = np.diff(t)
+    return np.concatenate([[0], np.cumsum((dt < 0) | (dt > gap_s))]).astype(int)
+
+
+def _show(value: object) -> str:
+    """A value quoted as the user wrote or would write it ('mesure', 3.0), never as a numpy repr."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    return repr(value)
 
 
 def _fmt(value: float) -> str:
@@ -176,19 +194,19 @@ def _validate(rec: Recording, loc: _Locator, robot: Robot | None, min_measure_ro
         first_line_of_seq[s] = i
 
         if phase[i] not in PHASES:
-            raise loc.error(i, s, "phase", f"unknown phase {phase[i]!r}; expected one of {', '.join(PHASES)}")
+            raise loc.error(i, s, "phase", f"unknown phase {_show(phase[i])}; expected one of {', '.join(PHASES)}")
 
         t = float(time_s[i])
         if not math.isfinite(t):
-            raise loc.error(i, s, "time_s", f"{t!r} is not finite")
+            raise loc.error(i, s, "time_s", f"{_show(t)} is not finite")
         if t < 0:
-            raise loc.error(i, s, "time_s", f"{t!r} s is negative; times are seconds >= 0")
+            raise loc.error(i, s, "time_s", f"{_show(t)} s is negative; times are seconds >= 0")
 
         cmd_known = np.isfinite(cmd[i])
         cmd_nan = np.isnan(cmd[i])
         for k, col in enumerate(CMD_COLUMNS):
             if not cmd_known[k] and not cmd_nan[k]:
-                raise loc.error(i, s, col, f"{float(cmd[i, k])!r} is not finite")
+                raise loc.error(i, s, col, f"{_show(float(cmd[i, k]))} is not finite")
         if cmd_known.any() and not cmd_known.all():
             missing = [c for c, known in zip(CMD_COLUMNS, cmd_known, strict=True) if not known]
             raise loc.error(
@@ -202,15 +220,15 @@ def _validate(rec: Recording, loc: _Locator, robot: Robot | None, min_measure_ro
         for k, col in enumerate(LEG_COLUMNS):
             v = float(legs_mm[i, k])
             if not math.isfinite(v):
-                raise loc.error(i, s, col, f"{v!r} is not finite")
+                raise loc.error(i, s, col, f"{_show(v)} is not finite")
             if robot is None and v <= 0:
-                raise loc.error(i, s, col, f"{v!r} mm is not a positive leg length")
+                raise loc.error(i, s, col, f"{_show(v)} mm is not a positive leg length")
             if not leg_lo <= v <= leg_hi:
                 raise loc.error(
                     i,
                     s,
                     col,
-                    f"{v!r} mm is outside the physical range [{_bound(leg_lo)}, {_bound(leg_hi)}] mm "
+                    f"{_show(v)} mm is outside the physical range [{_bound(leg_lo)}, {_bound(leg_hi)}] mm "
                     f"(leg limits widened by {_bound(LEG_MARGIN_MM)} mm)",
                 )
 
@@ -221,7 +239,7 @@ def _validate(rec: Recording, loc: _Locator, robot: Robot | None, min_measure_ro
             for k, col in enumerate(columns):
                 v = float(values[k])
                 if not math.isfinite(v):
-                    raise loc.error(i, s, col, f"{v!r} is not finite")
+                    raise loc.error(i, s, col, f"{_show(v)} is not finite")
                 lo, hi = pose_limits[k]
                 if not lo <= v <= hi:
                     unit = "mm" if k < 3 else "deg"
@@ -235,20 +253,20 @@ def _validate(rec: Recording, loc: _Locator, robot: Robot | None, min_measure_ro
                         i,
                         s,
                         col,
-                        f"{v!r} {unit} is outside the physical range "
+                        f"{_show(v)} {unit} is outside the physical range "
                         f"[{_bound(lo)}, {_bound(hi)}] {unit} ({why})",
                     )
 
         if temp is not None:
             if temp.dtype.kind != "f":
-                raise loc.error(i, s, "temp_c", f"{temp[i]!r} is not a number")
+                raise loc.error(i, s, "temp_c", f"{_show(temp[i])} is not a number")
             v = float(temp[i])
             if not TEMP_RANGE_C[0] <= v <= TEMP_RANGE_C[1]:
                 raise loc.error(
                     i,
                     s,
                     "temp_c",
-                    f"{v!r} °C is outside the physical range [{_bound(TEMP_RANGE_C[0])}, "
+                    f"{_show(v)} °C is outside the physical range [{_bound(TEMP_RANGE_C[0])}, "
                     f"{_bound(TEMP_RANGE_C[1])}] °C",
                 )
 
@@ -312,7 +330,7 @@ def recording_from_arrays(
         bad = ~np.isfinite(seq_arr) | (seq_arr != np.round(seq_arr))
         if np.any(bad):
             i = int(np.argmax(bad))
-            raise _Locator(source, None).error(i, None, "seq", f"{seq_arr[i]!r} is not an integer")
+            raise _Locator(source, None).error(i, None, "seq", f"{_show(seq_arr[i])} is not an integer")
     elif seq_arr.dtype.kind not in "iu":
         raise RecordingError(f"{source}: seq must be integers, got dtype {seq_arr.dtype}", column="seq")
     arrays = {

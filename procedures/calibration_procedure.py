@@ -2,8 +2,9 @@
 
 Measure the plan's measurement and verification poses on the uncalibrated controller, identify (LS and
 L-infinity on the same rows), check plausibility, compensate (full geometry, or best leg offsets),
-upload after confirmation, then re-measure the verification poses on the compensated controller.
-Poses already in the journal are skipped, so a resumed run continues where it stopped.
+upload after confirmation, then re-measure the verification poses on the compensated controller and, if asked,
+run the ISO 9283 acceptance test (``procedures.acceptance``) on it. Poses already in the journal are skipped, so a
+resumed run continues where it stopped.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from drivers.controller_modbus import ParameterSet
+from hilcal.acceptance.uncertainty import model_uncertainty
 from hilcal.calibration import CalibrationOutcome, calibrate
 from hilcal.compensation import Compensation, ControllerGeometry, compensate, plausibility
 from hilcal.kinematics import forward_kinematics, inverse_kinematics
@@ -22,12 +24,13 @@ from hilcal.planning import design
 from hilcal.recording import Recording, recording_from_arrays
 from hilcal.robot import Robot
 from procedures import messages as m
+from procedures.acceptance import ACCEPTANCE_PHASE, AcceptanceTest
 from procedures.plan import CalibrationPlan, return_waypoints, waypoints
 from procedures.records import parameter_diff
 
 PRE_PHASES = ("measure", "verify")
 AFTER_PHASE = "verify_after"
-TIMED_PHASES = (*PRE_PHASES, AFTER_PHASE, "return_home")
+TIMED_PHASES = (*PRE_PHASES, AFTER_PHASE, ACCEPTANCE_PHASE, "return_home")
 """Phases whose start and end the procedure journals (checkpoints phase_start:NAME, phase_end:NAME)."""
 
 
@@ -38,6 +41,7 @@ class RunOptions:
     save: bool = True
     joint_bound_mm: float = 10.0
     offset_bound_mm: float = 20.0
+    acceptance: AcceptanceTest | None = None
 
 
 @dataclass
@@ -51,6 +55,7 @@ class ProcedureResult:
     before_params: ParameterSet | None = None
     upload: dict | None = None
     after_rows: list[dict] = field(default_factory=list)
+    acceptance_rows: list[dict] = field(default_factory=list)
 
 
 def controller_geometry(params: ParameterSet) -> ControllerGeometry:
@@ -90,16 +95,31 @@ def identification_summary(result: ProcedureResult, top: int = 12) -> dict[str, 
             "n_parameters": len(chosen.names)}
 
 
-def approval_detail(before: ParameterSet, new: ParameterSet, result: ProcedureResult) -> dict[str, Any]:
-    """What the operator reads before approving the upload: every changed parameter and the predicted gain."""
+def approval_detail(before: ParameterSet, new: ParameterSet, result: ProcedureResult, robot: Robot,
+                    samples: np.ndarray) -> dict[str, Any]:
+    """What the operator reads before approving the upload: every changed parameter and what can be predicted.
+
+    The prediction is the identified model against the held-out verification poses (measured before the upload,
+    not used in the fit), and the parameters' covariance carried to `samples` (workspace poses). The model against
+    itself (zero for a full upload) predicts nothing and is not shown.
+    """
     comp = result.compensation
     assert comp is not None
     outcome = result.outcomes[result.chosen]
+    ident = outcome.identification
+    spread = None
+    if ident.covariance is not None and ident.model == "42" and np.all(np.isfinite(ident.covariance)):
+        spread = model_uncertainty(robot, ident.covariance, samples).as_json()
     return {"estimator": result.chosen, "mode": comp.mode, "new_sha256": new.sha256(),
             "live_sha256": before.sha256(), "diff": parameter_diff(before, new),
             "measured_before": outcome.before.brief() if outcome.before else None,
-            "predicted_after": comp.predicted.brief(),
-            "predicted_basis": f"identified model, {comp.predicted.n_poses} workspace poses",
+            "predicted_after": outcome.after.brief() if outcome.after else None,
+            "predicted_basis": f"the identified model against the {outcome.n_verify} held-out verification poses "
+                               "(measured before the upload, not used in the fit)",
+            "model_uncertainty": spread,
+            "model_uncertainty_basis": None if spread is None else (
+                f"the {result.chosen} parameters' covariance carried to {len(samples)} workspace poses: expected "
+                "error, 1 sigma (k = 2 doubles it)"),
             "uncompensated": None if comp.uncompensated is None else comp.uncompensated.brief()}
 
 
@@ -173,14 +193,19 @@ def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptio
                                       "problems": result.problems, "identification": identification_summary(result)})
     yield m.Prompt("upload", f"Upload the {result.compensation.mode.replace('_', ' ')} parameter set "
                              f"({options.estimator}) to the controller?",
-                   approval_detail(before, new_params, result))
+                   approval_detail(before, new_params, result, robot, samples))
     yield m.Disable()
     result.upload = yield m.Upload(new_params, options.save)
     yield m.Enable()
     pose = yield from _measure_phase(AFTER_PHASE, plan.poses("verify"), result.compensation.parameters, pose, plan)
+    if options.acceptance is not None:
+        route, _ = options.acceptance.route()
+        pose = yield from _measure_phase(ACCEPTANCE_PHASE, route, result.compensation.parameters, pose, plan)
     pose = yield from return_home(result.compensation.parameters, pose, robot, plan)
     yield m.Disable()
     result.after_rows = yield m.Recall((AFTER_PHASE,))
+    if options.acceptance is not None:
+        result.acceptance_rows = yield m.Recall((ACCEPTANCE_PHASE,))
     result.status = "complete"
     yield m.Checkpoint("complete")
     return result

@@ -63,6 +63,9 @@ class Engine:
         self.on_measure = on_measure
         self.observer = observer
         self.t0 = time.monotonic()
+        self.cmm_alignment = devices.cmm_alignment
+        """Where the probe patterns are laid out: the station's alignment, then each pose's registration on the
+        base spheres (only a prediction: every pose measures its base spheres again and is computed from them)."""
         self.guard = LinkGuard(devices, journal, links, approach_mm=approach_mm, move_timeout_s=move_timeout_s,
                                publish=self._publish)
 
@@ -186,8 +189,8 @@ class Engine:
         if row is not None:
             return row
         legs = np.asarray(self.devices.controller.feedback().lengths_mm, dtype=float)
-        pm = self.devices.cmm.measure_pose(self.devices.robot, self.devices.cmm_alignment,
-                                           expected_pose=np.array(msg.cmd_pose))
+        pm = self.devices.cmm.measure_pose(self.devices.robot, self.cmm_alignment, expected_pose=np.array(msg.cmd_pose))
+        self.cmm_alignment = pm.refined_alignment
         detail = {"sphere_fit_rms_mm": float(np.max(pm.pose_fit.rms_residual_mm))}
         row = self.journal.add_measurement(msg.phase, msg.index, time.monotonic() - self.t0, np.array(msg.cmd_pose),
                                            legs, np.asarray(pm.pose, dtype=float), detail)

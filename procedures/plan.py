@@ -193,12 +193,13 @@ def timing_for(plan: CalibrationPlan, timing: MotionTiming) -> MotionTiming:
                         timing.move_overhead_s)
 
 
-def estimate_plan(plan: CalibrationPlan, robot: Robot, timing: MotionTiming, start_pose: np.ndarray | None = None
-                  ) -> TimeEstimate:
-    """Estimated machine time of running the plan from start_pose (default home) and back home, per phase."""
+def estimate_plan(plan: CalibrationPlan, robot: Robot, timing: MotionTiming, start_pose: np.ndarray | None = None,
+                  acceptance_poses: np.ndarray | None = None) -> TimeEstimate:
+    """Estimated machine time of running the plan from start_pose (default home) and back home, per phase; with
+    the acceptance test's poses in visiting order, its phase too."""
     start = robot.home if start_pose is None else np.asarray(start_pose, dtype=float)
     return estimate_route(Geometry.nominal(robot), start, calibration_phases(plan.poses("measure"),
-                                                                             plan.poses("verify")),
+                                                                             plan.poses("verify"), acceptance_poses),
                           motion_rules(plan), timing_for(plan, timing), robot.home)
 
 

@@ -4,16 +4,19 @@ the engine with a journal, and writes the recording, the report and the calibrat
 The runner knows no simulator: for a ``--sim`` run the caller (the command line) passes ``RunRequest.sim_station``,
 a context manager that starts the simulated devices and yields the station wired to them.
 
-Exit codes: 0 complete, 2 bad input, 3 device fault, abort or refusal (journal kept, resumable).
+Exit codes: 0 complete, 2 bad input, 3 device fault, abort or refusal (journal kept, resumable), 4 complete but
+not accepted (the sign-off verdict is fail or not proven; the certificate says which limit). A records database
+that does not answer at the start is a refusal (3, nothing started); one lost mid-run only delays the records
+(they wait in the run's journal for ``hilcal records sync``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime as dt
 import json
 import logging
-import os
 import shlex
 import uuid
 from collections.abc import Callable, Iterator
@@ -31,6 +34,7 @@ from hilcal.planning.machine_time import TimeEstimate
 from hilcal.recording import write_recording
 from hilcal.reports.timing import time_section
 from hilcal.robot import Robot, RobotFileError, load_robot
+from procedures.acceptance import ACCEPTANCE_PHASE, AcceptanceTest, make_acceptance, save_acceptance
 from procedures.calibration_procedure import (
     AFTER_PHASE,
     PRE_PHASES,
@@ -40,13 +44,20 @@ from procedures.calibration_procedure import (
     calibration_procedure,
     recording_from_rows,
 )
+from procedures.certificate import (
+    SignoffContext,
+    finish_certificate,
+    record_signoff,
+    signoff_section,
+    signoff_settings,
+)
 from procedures.engine import Engine, RunInterrupted
 from procedures.journal import Journal
 from procedures.link_guard import links_summary
 from procedures.plan import CalibrationPlan, PlanError, estimate_plan, load_plan, make_plan, save_plan
 from procedures.timing import TimingSection
 
-EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 2, 3
+EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NOT_ACCEPTED = 0, 2, 3, 4
 
 
 class SimulatorStartError(RuntimeError):
@@ -63,6 +74,7 @@ class RunExit:
     run_id: str
     message: str
     report_path: Path | None = None
+    certificate_path: Path | None = None
 
 
 def new_run_id() -> str:
@@ -105,16 +117,21 @@ def _summary(rows: list[dict]) -> AccuracySummary:
 def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robot: Robot, options: RunOptions,
                      out_dir: Path, run_id: str, confirm: Callable[[str], bool] | None,
                      started_at: str, timing: TimingSection | None = None,
-                     observer: Callable[[str, dict], None] | None = None) -> RunExit:
+                     observer: Callable[[str, dict], None] | None = None, recorder: Any = None,
+                     signoff: Any = None) -> RunExit:
     """Run (or continue) the procedure on open devices and write every output; never raises on device faults.
 
     `timing` (the station's) gives the report its estimated against actual machine time; `observer` receives
-    the engine's events (the operator panel).
+    the engine's events (the operator panel); `recorder` (``procedures.records.sync.RunRecorder``) gives the
+    report the drift since the machine's earlier calibrations, and the journal stages the run's geometry;
+    `signoff` (``procedures.certificate.SignoffContext``) makes a complete run's certificate and verdict.
     """
-    done = len(journal.measurements((*PRE_PHASES, AFTER_PHASE)))
+    done = len(journal.measurements((*PRE_PHASES, AFTER_PHASE, ACCEPTANCE_PHASE)))
     if done:
         journal.event("resumed", measurements=done)
     total = len(plan.measure_poses) + 2 * len(plan.verify_poses)
+    if options.acceptance is not None:
+        total += 5 * options.acceptance.cycles
     try:
         with _progress(total, done) as advance:
             engine = Engine(devices, journal, confirm=confirm, on_measure=advance,
@@ -127,13 +144,26 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
                        f"{resume_command(run_id, out_dir)}")
     pre_rows = journal.measurements(PRE_PHASES)
     write_recording(out_dir / "recording.csv", recording_from_rows(pre_rows, robot))
-    machine_time = None if timing is None else machine_time_report(journal, plan, robot, timing)
-    report_path = _write_report(out_dir, run_id, plan, robot, options, result, started_at, journal, machine_time)
+    route = None if options.acceptance is None else options.acceptance.route()[0]
+    machine_time = None if timing is None else machine_time_report(journal, plan, robot, timing, route)
+    drift = _stage_parameters(journal, run_id, result, robot, started_at, recorder)
+    signed = None
+    if signoff is not None and result.status == "complete":
+        signed = signoff_section(signoff, robot, plan, result, pre_rows, run_id,
+                                 dt.datetime.now(dt.UTC).isoformat())
+    report_path = _write_report(out_dir, run_id, plan, robot, options, result, started_at, journal, machine_time,
+                                drift, signed)
     journal.set_status(result.status)
     if result.status != "complete":
         return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} {result.status}: {'; '.join(result.problems)} "
                        "(nothing uploaded; use --force to upload anyway)", report_path)
-    return RunExit(EXIT_OK, run_id, f"run {run_id} complete", report_path)
+    if signed is None:
+        return RunExit(EXIT_OK, run_id, f"run {run_id} complete", report_path)
+    accepted, certificate, lines = finish_certificate(out_dir, report_path)
+    journal.event("certificate", path=str(certificate), accepted=accepted)
+    return RunExit(EXIT_OK if accepted else EXIT_NOT_ACCEPTED, run_id,
+                   "\n".join([f"run {run_id} complete" + ("" if accepted else ", NOT ACCEPTED"), *lines]),
+                   report_path, certificate)
 
 
 def resume_command(run_id: str, out_dir: Path) -> str:
@@ -141,21 +171,23 @@ def resume_command(run_id: str, out_dir: Path) -> str:
     return shlex.join(["hilcal", "run", "--resume", run_id, "--out", str(out_dir)])
 
 
-def machine_time_report(journal: Journal, plan: CalibrationPlan, robot: Robot, timing: TimingSection) -> dict:
-    """Estimated time per phase against the journal's phase checkpoints (wall clock)."""
+def machine_time_report(journal: Journal, plan: CalibrationPlan, robot: Robot, timing: TimingSection,
+                        acceptance_poses: np.ndarray | None = None) -> dict:
+    """Estimated time per phase (with the acceptance test's poses, if any) against the journal's phase checkpoints
+    (wall clock)."""
     actual: dict[str, float | None] = {}
     for phase in TIMED_PHASES:
         start = journal.step_time(f"checkpoint:phase_start:{phase}")
         end = journal.step_time(f"checkpoint:phase_end:{phase}")
         actual[phase] = end - start if start is not None and end is not None and end >= start else None
     interrupted = journal.count_events("interrupted", "resumed", "resumed_after_pause") > 0
-    estimate = estimate_plan(plan, robot, timing.timing())
+    estimate = estimate_plan(plan, robot, timing.timing(), acceptance_poses=acceptance_poses)
     return time_section(estimate, actual, {**timing.model_dump(), "settle_s": plan.settle_s}, interrupted=interrupted)
 
 
 def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robot, options: RunOptions,
-                  result: ProcedureResult, started_at: str, journal: Journal, machine_time: dict | None = None
-                  ) -> Path:
+                  result: ProcedureResult, started_at: str, journal: Journal, machine_time: dict | None = None,
+                  drift: dict | None = None, signoff: dict | None = None) -> Path:
     from hilcal.reports.run import RunReport, write_run_report
 
     verify_rows = journal.measurements(("verify",))
@@ -182,6 +214,8 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
         upload=result.upload,
         machine_time=machine_time,
         links=links_summary(journal),
+        drift=drift,
+        signoff=signoff,
     )
     json_path, _ = write_run_report(out_dir, report)
     journal.event("report", path=str(json_path))
@@ -225,8 +259,13 @@ class RunRequest:
     robot_path: Path | None = None
     plan_path: Path | None = None
     seed: int = 0
-    records_path: Path | None = None
+    records_path: Path | str | None = None
+    """The records database: a SQLite path or a URL (None: the station's, else $HILCAL_RECORDS or the default)."""
     operator: str | None = None
+    acceptance: str | None = None
+    """"iso9283": the ISO 9283 acceptance test after the verification (None: no acceptance test)."""
+    cycles: int = 30
+    """Cycles of the acceptance test (ISO 9283: 30)."""
     sim_station: SimStation | None = None
     timing: TimingSection | None = None
     """The machine's timing for a --sim run (a real run reads the station file's [timing])."""
@@ -234,14 +273,17 @@ class RunRequest:
     """Called with the plan's estimated machine time before anything moves."""
 
 
-def default_records_path() -> Path:
-    env = os.environ.get("HILCAL_RECORDS")
-    return Path(env) if env else Path.home() / ".local" / "share" / "hilcal" / "records.sqlite"
+def default_records_path() -> str:
+    """$HILCAL_RECORDS (a path or a URL), else ~/.local/share/hilcal/records.sqlite."""
+    from procedures.records import default_target
+
+    return default_target()
 
 
 def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: Any = None) -> RunExit:
     """Start or resume a run in req.out_dir; never raises for bad input or device trouble (see RunExit.code)."""
-    from procedures.records import Records
+    from procedures.records import RecordsError, RecordsUnavailable
+    from procedures.records.sync import RunRecorder
     from procedures.station import (
         DeviceOpenError,
         StationConfigError,
@@ -249,28 +291,43 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
         open_devices,
     )
 
+    recorder = RunRecorder(_records_target(req))
+    try:
+        recorder.open()
+    except RecordsError as e:
+        return RunExit(EXIT_BAD_INPUT, "", f"records: {e}")
+    except RecordsUnavailable as e:
+        return RunExit(EXIT_INTERRUPTED, "", f"{e}. The run did not start and nothing moved: start the database, or "
+                       "give --records FILE to record into a local SQLite file")
     req.out_dir.mkdir(parents=True, exist_ok=True)
     configure_logs(req.out_dir)
     started_at = dt.datetime.now(dt.UTC).isoformat()
     with Journal(req.out_dir / "journal.sqlite") as journal, contextlib.ExitStack() as stack:
+        stack.callback(recorder.close)
         try:
             if req.resume is None:
                 robot = load_robot(req.robot_path)
                 timing = _station_timing(req)
                 plan = (load_plan(req.plan_path, robot) if req.plan_path else
                         make_plan(robot, req.seed, timing=timing.timing()))
+                test = make_acceptance(robot, plan, req.cycles, req.acceptance) if req.acceptance else None
                 options = {"sim": req.sim, "estimator": req.estimator, "force": req.force,
-                           "timing": timing.model_dump(),
+                           "timing": timing.model_dump(), "operator": req.operator,
+                           "acceptance": None if test is None else test.model_dump(),
                            "robot_path": None if req.robot_path is None else str(req.robot_path),
                            "station_path": None if req.station_path is None else str(req.station_path),
                            "sim_config": None if req.sim_config is None else str(req.sim_config)}
                 run_id, plan, options = plan_for_run(journal, plan, None, options)
+                if test is not None:
+                    save_acceptance(test, req.out_dir / "acceptance.json")
             else:
                 run_id, plan, options = plan_for_run(journal, None, req.resume, {})
                 robot = load_robot(options["robot_path"])
                 timing = TimingSection.model_validate(options.get("timing", {}))
+                test = AcceptanceTest.model_validate(options["acceptance"]) if options.get("acceptance") else None
             if req.on_estimate is not None:
-                req.on_estimate(plan, estimate_plan(plan, robot, timing.timing()), timing)
+                route = None if test is None else test.route()[0]
+                req.on_estimate(plan, estimate_plan(plan, robot, timing.timing(), acceptance_poses=route), timing)
             if options["sim"]:
                 if req.sim_station is None:
                     raise ValueError("this run uses the simulated devices (--sim), but no simulator was given")
@@ -278,6 +335,7 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
                                                               options["robot_path"]))
             else:
                 station = load_station(req.station_path or options["station_path"])
+            settings = signoff_settings(options, None if options["sim"] else station)
         except (RobotFileError, PlanError, StationConfigError, ValueError) as e:
             return RunExit(EXIT_BAD_INPUT, "", str(e))
         except SimulatorStartError as e:
@@ -287,13 +345,14 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
         except DeviceOpenError as e:
             return RunExit(EXIT_INTERRUPTED, run_id, f"cannot open the station's devices: {e}; the journal is kept, "
                            f"continue with: {resume_command(run_id, req.out_dir)}")
-        run_options = RunOptions(estimator=options["estimator"], force=bool(options["force"]))
-        operator = req.operator
+        run_options = RunOptions(estimator=options["estimator"], force=bool(options["force"]), acceptance=test)
+        operator = req.operator or options.get("operator") or settings.operator
         if panel is not None:
             from procedures.panel.control import NotStarted
 
             panel.run_opened(run_id=run_id, plan=plan, robot=robot, out_dir=req.out_dir, journal=journal,
-                             devices=devices, resumed=req.resume is not None)
+                             devices=devices, resumed=req.resume is not None,
+                             acceptance_poses=0 if test is None else 5 * test.cycles)
             try:
                 operator = panel.wait_start() or operator
             except (NotStarted, KeyboardInterrupt):
@@ -302,14 +361,17 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
                 panel.finished(code=result.code, message=result.message, status="not started", out_dir=None,
                                report=None)
                 return result
-        with Records(req.records_path or default_records_path()) as records:
-            if records.run(run_id) is None:
-                records.record_run(run_id, started_at=started_at, status="running", robot_name=robot.name,
-                                   plan_sha256=plan.sha256(), operator=operator, out_dir=str(req.out_dir),
-                                   estimator=run_options.estimator)
-            result = run_with_devices(devices, journal, plan, robot, run_options, req.out_dir, run_id, confirm,
-                                      started_at, timing, None if panel is None else panel.observer)
-            _record_outcome(records, journal, run_id, operator, result)
+        _record_start(recorder, journal, req, run_id, started_at, robot, plan, operator, run_options.estimator)
+        signoff = SignoffContext(operator, settings, test, bool(options["sim"]), options["robot_path"],
+                                 station.cmm.url)
+        result = run_with_devices(devices, journal, plan, robot, run_options, req.out_dir, run_id, confirm,
+                                  started_at, timing, None if panel is None else panel.observer, recorder, signoff)
+        _record_outcome(recorder, journal, run_id, operator, result)
+        note = record_signoff(recorder, journal, result.report_path, result.certificate_path)
+        if note:
+            result = dataclasses.replace(result, message=f"{result.message}\n{note}")
+        if recorder.message(req.out_dir):
+            result = dataclasses.replace(result, message=f"{result.message}\n{recorder.message(req.out_dir)}")
         if panel is not None:
             report = json.loads(result.report_path.read_text()) if result.report_path is not None else None
             panel.finished(code=result.code, message=result.message, status=journal.run_info()["status"],
@@ -326,15 +388,72 @@ def _station_timing(req: RunRequest) -> TimingSection:
     return load_station(req.station_path).timing if req.station_path else TimingSection()
 
 
-def _record_outcome(records: Any, journal: Journal, run_id: str, operator: str | None, result: RunExit) -> None:
+def _records_target(req: RunRequest) -> str | Path | None:
+    """--records, else the station file's records (a real run), else $HILCAL_RECORDS or the default file."""
+    from procedures.station import StationConfigError, load_station
+
+    if req.records_path is not None:
+        return req.records_path
+    if req.station_path is not None and not req.sim:
+        try:
+            return load_station(req.station_path).records_target()
+        except StationConfigError:
+            return None  # the run reports the station file's problems itself
+    return None
+
+
+def _station_identity(req: RunRequest, options: dict) -> tuple[str | None, str | None]:
+    """The station's name and the machine's serial from the station file, if the run has one (a --sim run's
+    station file may hold only these, its [timing] and its sign-off settings: ``procedures.signoff``)."""
+    from procedures.signoff import SignoffFileError, load_signoff
+
+    path = req.station_path or options.get("station_path")
+    if path is None:
+        return None, None
+    try:
+        settings = load_signoff(path)
+    except SignoffFileError:
+        return None, None
+    return settings.name, settings.machine_serial
+
+
+def _record_start(recorder: Any, journal: Journal, req: RunRequest, run_id: str, started_at: str, robot: Robot,
+                  plan: CalibrationPlan, operator: str | None, estimator: str) -> None:
+    """Record the run at its start (a resumed run keeps what its first start recorded)."""
+    from procedures.records.sync import run_fields, staged
+
+    run = staged(journal)["run"]
+    if not run:
+        station, serial = _station_identity(req, journal.run_info()["options"])
+        run = run_fields(run_id, started_at, robot.name, plan.sha256(), operator, req.out_dir, estimator, serial,
+                         station)
+    recorder.machine = run["machine"]
+    recorder.write(journal, run=run)
+
+
+def _stage_parameters(journal: Journal, run_id: str, result: ProcedureResult, robot: Robot, started_at: str,
+                      recorder: Any) -> dict | None:
+    """Stage the machine's estimated geometry in the journal; the drift since its earlier calibrations."""
+    from procedures.records.sync import calibration_parameters, stage, staged
+
+    parameters = calibration_parameters(result, robot)
+    if parameters is None:
+        return None
+    stage(journal, parameters=parameters)
+    if recorder is None:
+        return None
+    return recorder.drift_since(run_id, staged(journal)["run"].get("started_at", started_at), parameters)
+
+
+def _record_outcome(recorder: Any, journal: Journal, run_id: str, operator: str | None, result: RunExit) -> None:
     status = journal.run_info()["status"]
     fields: dict[str, Any] = {"status": status, "finished_at": dt.datetime.now(dt.UTC).isoformat()}
     if result.report_path is not None:
         report = json.loads(result.report_path.read_text())
         fields["verify_before"] = report["verification"]["before"]
         fields["verify_after"] = report["verification"]["after"]
-    records.update_run(run_id, **fields)
     upload = journal.step("upload")
-    if upload is not None and upload.get("record") and not journal.step("recorded_upload"):
-        records.record_upload(upload["record"], operator, run_id=run_id)
-        journal.set_step("recorded_upload", True)
+    staged_upload = None
+    if upload is not None and upload.get("record"):
+        staged_upload = {"upload_id": f"{run_id}/upload", "record": upload["record"], "operator": operator}
+    recorder.write(journal, run=fields, upload=staged_upload)

@@ -8,7 +8,7 @@ Example::
 
     robot = "robots/plant3.toml"       # omit for the built-in paper Table 1 robot
     name = "bay 2 station"             # this calibration station (optional)
-    records = "records"                # where runs are recorded (optional)
+    records = "records"                # where runs are recorded (optional): a folder (its records.sqlite) or file
     operator = "J. Smith"              # optional
 
     [machine]                          # the machine on the station (optional)
@@ -28,6 +28,9 @@ Example::
     [cmm]
     url = "/dev/ttyUSB0"               # any pyserial URL, e.g. socket://10.0.0.5:1294
     alignment = [1250.0, -3400.0, -820.0, 0.0, 0.0, 90.0]   # T_cmm<-base: [x, y, z, roll, pitch, yaw] or 4x4
+    identity = "Leitz PMM-C, serial 4711"   # for the certificate (procedures.signoff.CmmIdentity)
+    stated_uncertainty_mm = 0.004      # expanded U (k = 2) of one measured sphere-centre coordinate
+    calibration_due = 2027-03-31       # the CMM's own calibration
     [cmm.serial]                       # drivers.cmm_serial.SerialCmmConfig
     command_timeout_s = 30.0
     [cmm.probing]                      # drivers.cmm_base.ProbingConfig
@@ -48,6 +51,13 @@ Example::
     settle_s = 2.0
     cmm_s_per_pose = 45.0
     move_overhead_s = 0.5
+
+    [records]                          # instead of the top-level records path: a database for the whole plant
+    url = "postgresql+psycopg://hilcal@db.plant/hilcal"   # or a SQLite file path (relative to this file)
+
+    [acceptance]                       # procedures.signoff.AcceptanceSection: limits of the sign-off
+    max_position_mm = 0.05
+    rp_position_mm = 0.02
 """
 
 from __future__ import annotations
@@ -71,6 +81,7 @@ from drivers.controller_can import ControllerCan
 from drivers.controller_modbus import ControllerParams
 from hilcal.robot import Robot, RobotFileError, load_robot
 from procedures.link_guard import LinksSection
+from procedures.signoff import AcceptanceSection, CmmIdentity
 from procedures.timing import TimingSection
 
 log = structlog.get_logger(__name__)
@@ -117,8 +128,9 @@ class ModbusSection(_Strict):
         return self
 
 
-class CmmSection(_Strict):
-    """The CMM: a pyserial URL, the approximate T_cmm<-base, transport and probing options."""
+class CmmSection(CmmIdentity):
+    """The CMM: a pyserial URL, the approximate T_cmm<-base, transport and probing options; for the certificate
+    its identity, stated uncertainty and calibration due date (``procedures.signoff.CmmIdentity``)."""
 
     url: str = Field(description="pyserial URL: /dev/ttyUSB0, socket://HOST:PORT, ...")
     alignment: list[Any] = Field(
@@ -165,6 +177,12 @@ class MachineSection(_Strict):
     serial: str | None = Field(default=None, min_length=1, max_length=100, description="the machine's serial")
 
 
+class RecordsSection(_Strict):
+    """Where the calibration records go: a database URL (``postgresql+psycopg://user@host/db``) or a SQLite file."""
+
+    url: str = Field(min_length=1, description="database URL or SQLite file path")
+
+
 class StationConfig(_Strict):
     """Where the devices of one calibration station are (see the module docstring for a TOML example)."""
 
@@ -177,8 +195,19 @@ class StationConfig(_Strict):
     motion: MotionSection = Field(default_factory=MotionSection)
     timing: TimingSection = Field(default_factory=TimingSection)
     links: LinksSection = Field(default_factory=LinksSection)
-    records: Path | None = Field(default=None, description="folder for run records")
+    acceptance: AcceptanceSection = Field(default_factory=AcceptanceSection)
+    records: Path | RecordsSection | None = Field(default=None, description="folder or file of the run records, "
+                                                  "or a [records] table with a database url")
     operator: str | None = None
+
+    def records_target(self) -> str | None:
+        """The records database this station names: a URL, a SQLite file, or a folder's records.sqlite."""
+        if isinstance(self.records, RecordsSection):
+            return self.records.url
+        if self.records is None:
+            return None
+        return str(self.records if self.records.suffix in (".sqlite", ".sqlite3", ".db") else
+                   self.records / "records.sqlite")
 
 
 def _format_errors(err: ValidationError, source: str) -> str:
@@ -214,6 +243,9 @@ def load_station(path: str | Path) -> StationConfig:
         value = data.get(key)
         if isinstance(value, str) and value and not Path(value).is_absolute():
             data[key] = str(base / value)
+    url = data["records"].get("url") if isinstance(data.get("records"), dict) else None
+    if isinstance(url, str) and url and "://" not in url and not Path(url).is_absolute():
+        data["records"]["url"] = str(base / url)
     return station_from_dict(data, source)
 
 

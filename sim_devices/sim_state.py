@@ -1,9 +1,10 @@
 """The simulator's persistent state: parameter banks, leg lengths, motion directions and clock in a locked file.
 
 With a ``state_file`` the controller's parameter banks (live, backup, saved), the rig's reported leg lengths,
-motion directions and clock are written atomically (temp file + ``os.replace``) on every change, before the
-change is acknowledged on the wire, and loaded at start: a simulator restarted on the same file finds the
-controller as it was (powered up DISABLED, like a real controller after a power cycle).
+motion directions and clock are written atomically (temp file + ``os.replace``) and loaded at start: a simulator
+restarted on the same file finds the controller as it was (powered up DISABLED, like a real controller after a
+power cycle). A bank change is written and fsynced before it is acknowledged on the wire (it survives a power cut,
+like a controller's NVRAM); leg motion is written at most every MOTION_SAVE_PERIOD_S (see PersistentController).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import numpy as np
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from hilcal.protocols.controller_states import Command, ControllerState, FaultCode, RefusalReason
+from hilcal.protocols.controller_states import Command, FaultCode, RefusalReason
 from hilcal.protocols.registers import ParamCommand, ParamStatus
 from hilcal.robot import Robot
 from sim_devices.controller.state_machine import ControllerSimConfig, ControllerSnapshot, SimulatedController
@@ -32,8 +33,8 @@ log = structlog.get_logger(__name__)
 
 STATE_FORMAT = "hilcal-sim-state"
 STATE_VERSION = 1
-MOVING_SAVE_PERIOD_S = 0.2
-"""While the legs move, their lengths are saved at most this often (real time); state changes at once."""
+MOTION_SAVE_PERIOD_S = 0.2
+"""Leg lengths, motion directions and the controller state are saved at most this often (real time); banks at once."""
 CLOCK_STEP_S = 10.0
 """The rig clock follows simulated time in steps of this many simulated seconds."""
 DIRECTION_STEP_MM = 0.002
@@ -124,13 +125,18 @@ class StateStore:
         self.sequence = state.sequence
         return state
 
-    def write(self, state: SimState) -> None:
-        """Replace the file atomically (temp file, fsync, os.replace)."""
+    def write(self, state: SimState, durable: bool = True) -> None:
+        """Replace the file atomically (temp file, os.replace): a killed simulator leaves the old or the new file.
+
+        durable: fsync first, so the file also survives a power cut (the parameter banks, a controller's NVRAM);
+        leg lengths and states change on every move and need only the atomic replace.
+        """
         tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         with open(tmp, "w") as fh:
             fh.write(state.model_dump_json(indent=1))
             fh.flush()
-            os.fsync(fh.fileno())
+            if durable:
+                os.fsync(fh.fileno())
         os.replace(tmp, self.path)
 
     def close(self) -> None:
@@ -155,8 +161,10 @@ class PersistentController(SimulatedController):
     """SimulatedController whose rig clock follows simulated time and whose state is saved on every change.
 
     Every public method that can change the banks, the state or the legs saves (under the model lock, before
-    returning, i.e. before the change is acknowledged on CAN or Modbus) when something changed; while the legs
-    move (state MOVING, banks unchanged) at most every MOVING_SAVE_PERIOD_S.
+    returning, i.e. before the change is acknowledged on CAN or Modbus) when the banks changed; changes of the
+    legs and the state alone at most every MOTION_SAVE_PERIOD_S (the heartbeat's snapshots write the last one),
+    so a move is not slowed by a file write. A killed simulator restarts with its banks exactly as acknowledged
+    and its legs as they were at most that long before; a stopped one saves everything on close.
     """
 
     def __init__(
@@ -221,11 +229,11 @@ class PersistentController(SimulatedController):
             if not force:
                 if key == self._saved_key and motion == self._saved_motion:
                     return
-                moving = state.controller_state == ControllerState.MOVING.name
                 same_banks = self._saved_key is not None and state.banks == self._saved_key[1]
-                if moving and same_banks and now - self._saved_at < MOVING_SAVE_PERIOD_S:
+                if same_banks and now - self._saved_at < MOTION_SAVE_PERIOD_S:
                     return
-            self._store.write(state)
+            banks_changed = self._saved_key is None or state.banks != self._saved_key[1]
+            self._store.write(state, durable=force or banks_changed)
             self._store.sequence = state.sequence
             self._saved_key, self._saved_motion, self._saved_at = key, motion, now
 

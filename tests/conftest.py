@@ -1,4 +1,5 @@
-"""Shared fixtures: the default robot and a seeded generator."""
+"""Shared fixtures: the default robot, a seeded generator, and a throw-away PostgreSQL server (``postgres``,
+``pg_url``) for the records tests."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import pytest
 import structlog
 
 from hilcal.robot import Robot, default_robot
+from tests.postgres_server import pg_url, postgres  # noqa: F401  (fixtures)
 
 
 @pytest.fixture(autouse=True)
@@ -26,6 +28,23 @@ def robot() -> Robot:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+def pytest_sessionfinish(session) -> None:
+    """Under pytest-xdist a worker hands its browser latencies to the controller, which prints the summary."""
+    support = sys.modules.get("tests.cli.browser_support")
+    if hasattr(session.config, "workeroutput") and support is not None:
+        session.config.workeroutput["panel_latencies_s"] = list(support.LATENCIES_S)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error) -> None:
+    """The controller of an xdist run collects what a finished worker measured (pytest-xdist's hook)."""
+    latencies = getattr(node, "workeroutput", {}).get("panel_latencies_s")
+    if latencies:
+        from tests.cli import browser_support
+
+        browser_support.LATENCIES_S.extend(latencies)
 
 
 def pytest_terminal_summary(terminalreporter) -> None:

@@ -43,14 +43,18 @@ def candidate_jacobians(robot: Robot, geometry: Geometry, poses: np.ndarray, len
 
 def augment(robot: Robot, geometry: Geometry, length_mm: float, information: np.ndarray, sigma2: float,
             phi: Callable[[EffectContext], np.ndarray], block: np.ndarray, band_of: Callable[[np.ndarray], float],
-            target_band_mm: float, seed: int = 0) -> Augmentation:
+            target_band_mm: float, seed: int = 0, geometry_scale: np.ndarray | None = None) -> Augmentation:
     """Greedy Ds-optimal poses for the parameters `block` until `band_of(cov_block)` <= target (or the cap).
 
     `information` is J^T J of the recorded measure rows for the full parameter vector (geometry first),
-    `sigma2` the residual variance, `phi` the effect regressors of the whole model.
+    `sigma2` the residual variance, `phi` the effect regressors of the whole model. When the parameters were
+    scaled (J / scale, so that units as different as mm and ppm invert well), `geometry_scale` divides the geometry
+    columns of the candidates the same way (and `phi` returns the scaled effect regressors).
     """
     pool = random_poses(robot, POOL_SIZE, np.random.default_rng(seed))
     Jc = candidate_jacobians(robot, geometry, pool, length_mm, phi)
+    if geometry_scale is not None:
+        Jc[..., :42] /= geometry_scale
     p = information.shape[0]
     C = sigma2 * np.linalg.pinv(information + RIDGE * np.trace(information) / p * np.eye(p))
     chosen: list[int] = []

@@ -12,31 +12,23 @@ row of a session is unknown, so the direction and size of that row's last move a
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 from scipy.signal import savgol_filter
 
 from hilcal.kinematics import Geometry, gravity_wrench, leg_forces, leg_vectors, split_pose
-from hilcal.recording import Recording
+from hilcal.recording import SESSION_GAP_S, Recording, session_numbers
 from hilcal.robot import Robot
 
-SESSION_GAP_S = 4 * 3600.0
-"""A pause longer than this (or a clock that goes backwards) starts a new session: the machine may have
-been switched off, re-homed or left to cool, and the motion history is lost."""
 DIRECTION_DEADBAND_MM = 1e-3
 """Leg moves smaller than this keep the previous direction of motion (transducer resolution)."""
 TEMPERATURE_WINDOW = 7
 
 
 def detect_sessions(time_s: np.ndarray, gap_s: float = SESSION_GAP_S) -> np.ndarray:
-    """Session number (0, 1, ...) of every row in execution order."""
-    t = np.asarray(time_s, dtype=float)
-    if t.size == 0:
-        return np.zeros(0, dtype=int)
-    dt = np.diff(t)
-    starts = (dt < 0) | (dt > gap_s)
-    return np.concatenate([[0], np.cumsum(starts)]).astype(int)
+    """Session number (0, 1, ...) of every row in execution order (the recording format's rule)."""
+    return session_numbers(time_s, gap_s)
 
 
 def smooth_temperature(temp_c: np.ndarray, window: int = TEMPERATURE_WINDOW) -> np.ndarray:
@@ -152,6 +144,12 @@ class EffectContext:
             move_mm=np.full((n, 6), np.nan), base_angle_rad=base, platform_angle_rad=platform, temp_c=None,
             time_s=np.zeros(n), session=np.zeros(n, dtype=int), session_time_s=np.zeros(n), pose=q,
         )
+
+    def at_recorded_state(self, recorded: EffectContext) -> EffectContext:
+        """These (planned) rows with the recording's median temperature: extra poses taken at today's state."""
+        if recorded.temp_c is None:
+            return self
+        return replace(self, temp_c=np.full(self.n, float(np.median(recorded.temp_c))))
 
     @property
     def n(self) -> int:

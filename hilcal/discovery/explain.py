@@ -1,13 +1,18 @@
-"""The diagnosis in words: what is missing, the evidence, what was rejected, and how the residual compares with
-the measurement noise. Nothing is claimed that the numbers beside it do not show.
+"""The diagnosis in words: one sentence per finding first (what, on which legs, how big, in the machine's own
+terms), then the evidence (steps, held-out figures, the noise comparison, what was rejected and why). Nothing is
+claimed that the numbers beside it do not show.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
+from hilcal.discovery.naming import describe, unit_of
 from hilcal.discovery.noise import NoiseLevel
 from hilcal.discovery.physics import CANDIDATES_BY_NAME, ZERO_SHIFT, ZERO_SHIFT_TITLE
-from hilcal.discovery.result import Finding, NoiseComparison, SessionShift, Shape, Step
-from hilcal.discovery.term_groups import LIBRARY, TermGroup
+from hilcal.discovery.result import EndStop, Finding, NamedEffect, NoiseComparison, SessionShift, Shape, Step
+from hilcal.discovery.term_groups import FAULT, IMPOSSIBLE, TermGroup
 from hilcal.metrics import AccuracySummary
 
 FAR_ABOVE_NOISE = 2.0
@@ -28,33 +33,100 @@ def _um(value_mm: float) -> str:
     return f"{value_mm * 1000:.1f} µm"
 
 
-def _library_text(group: TermGroup, step: Step, params: dict[str, float], std: dict[str, float]) -> str:
-    values = ", ".join(f"{n} = {params[n]:+.3g} ± {std[n]:.2g}" for n in group.names)
-    return (f"{group.title}: {group.sentence}. Fitted with the geometry: {values}. Evidence (step {step.index}): "
-            f"F = {step.f_statistic:.1f}, family-wise p = {step.p_value:.3g}; leave-one-pose-out residual "
-            f"{_um(step.cv_before_mm)} -> {_um(step.cv_rms_mm)}.")
+def _named_sentence(n: NamedEffect) -> str:
+    kind = "Set-up fault" if n.grade == "fault" else "Missing physics"
+    return f"{kind} ({n.effect}, {n.title}): {n.sentence}"
 
 
-def _shapes_text(shapes: list[Shape]) -> str:
-    """One sentence per generic group (an all-leg group lists its legs)."""
-    texts = []
+def _shape_sentences(shapes: list[Shape], compensation: Any) -> list[str]:
+    """One sentence per generic group: where, how big over the recorded range, whether it is pinned down."""
+    out = []
+    sizes = {} if compensation is None else {(t.group, t.leg): t for t in compensation.terms}
     for key in dict.fromkeys(s.group.key for s in shapes):
         group_shapes = [s for s in shapes if s.group.key == key]
         first = group_shapes[0]
-        amplitudes = ", ".join(f"leg {s.leg + 1} {_um(s.amplitude_mm)}" for s in group_shapes)
-        gain = ""
+        parts = []
+        for s in group_shapes:
+            term = sizes.get((key, s.leg))
+            size = s.amplitude_mm if term is None else term.size_mm
+            where = "" if term is None else f" over the recorded {term.recorded_range[0]:.4g}-" \
+                                            f"{term.recorded_range[1]:.4g} {term.variable}"
+            parts.append(f"leg {s.leg + 1} ±{_um(size)}{where}")
+        text = f"Unexplained (no library effect describes it): {first.group.sentence} ({'; '.join(parts)})"
         if first.verify_before_mm is not None and first.verify_after_mm is not None:
-            gain = f"; held-out verify RMS {first.verify_before_mm:.4f} -> {first.verify_after_mm:.4f} mm"
-        text = f"{first.group.sentence} (amplitude {amplitudes}{gain})."
-        for shape in group_shapes:
-            if shape.pinned:
-                continue
-            text += f" Leg {shape.leg + 1}'s shape is not pinned down: {shape.why_not_pinned}."
-            if shape.proposed_poses is not None and len(shape.proposed_poses):
-                band = "" if shape.proposed_band_mm is None else f" (predicted band {_um(shape.proposed_band_mm)})"
-                text += f" Measure {len(shape.proposed_poses)} extra pose(s), D-optimal for these terms{band}."
-        texts.append(text)
-    return " ".join(texts)
+            text += (f"; modelling it takes the held-out verify RMS from {first.verify_before_mm:.4f} to "
+                     f"{first.verify_after_mm:.4f} mm")
+        loose = [s for s in group_shapes if not s.pinned]
+        if loose:
+            text += f"; not pinned down on leg(s) {', '.join(str(s.leg + 1) for s in loose)}: {loose[0].why_not_pinned}"
+            n_extra = [len(s.proposed_poses) for s in loose if s.proposed_poses is not None and len(s.proposed_poses)]
+            if n_extra:
+                text += f"; {max(n_extra)} extra pose(s), D-optimal for these terms, would pin it down"
+        out.append(text + ".")
+    return out
+
+
+def _alias_sentence(a: Any) -> str:
+    values = ", ".join(f"{describe(k)} {v:+.3g} ± {a.other_std_errors[k]:.2g} {unit_of(k)}"
+                       for k, v in a.other_values.items()
+                       if abs(v) > 3 * a.other_std_errors[k]) or "values within their uncertainty of zero"
+    grade = ("an impossible value" if IMPOSSIBLE in a.other_grades else
+             "a value a healthy machine cannot have (a fault)" if FAULT in a.other_grades else "typical values")
+    if a.other_named:
+        text = (f"Near-aliases: {a.chosen} and {a.other} look alike on these poses ({a.why}); both are named, and "
+                f"the recording {'separates' if a.correlation_now <= 0.8 else 'hardly separates'} them (their "
+                f"estimates correlate at {a.correlation_now:.2f})")
+        if a.separating_poses is not None and len(a.separating_poses):
+            after = "" if a.correlation_after is None else f" to {a.correlation_after:.2f}"
+            payload = "" if a.payload_kg is None else f" with a payload of {a.payload_kg:.3g} kg"
+            text += f"; {len(a.separating_poses)} extra pose(s){payload} would bring that{after}"
+        return text + "."
+    text = (f"Near-alias of {a.chosen}: {a.other} ({a.other_title}) explains {a.gain_ratio:.0%} as much of the "
+            f"held-out error "
+            f"with {grade} ({values}); {a.why}")
+    if a.log10_bayes_factor is not None:
+        text += (f". Chosen by how typical each value is for this machine: the evidence favours {a.chosen} by a "
+                 f"factor of 10^{a.log10_bayes_factor:.1f}")
+    if a.separating_poses is not None and len(a.separating_poses):
+        after = "" if a.correlation_after is None else f" to {a.correlation_after:.2f}"
+        payload = "" if a.payload_kg is None else f" with a payload of {a.payload_kg:.3g} kg on the platform"
+        text += (f". {len(a.separating_poses)} extra pose(s){payload}, D-optimal for telling them apart, would bring "
+                 f"the correlation of the two estimates from {a.correlation_now:.2f}{after}")
+    return text + "."
+
+
+def summary_sentences(named: tuple[NamedEffect, ...], shapes: list[Shape], aliases: tuple[Any, ...],
+                      shift: SessionShift | None, stops: tuple[EndStop, ...], not_converged: tuple[str, ...],
+                      effects: list[str], ratio: NoiseComparison | None, noise: NoiseLevel,
+                      compensation: Any = None) -> list[str]:
+    """The opening of the answer: one sentence per finding."""
+    out = [_named_sentence(n) for n in named]
+    out += _shape_sentences(list(shapes), compensation)
+    out += [_alias_sentence(a) for a in aliases]
+    if shift is not None and shift.legs:
+        moved = ", ".join(f"leg {i} {shift.shift_mm[i - 1] * 1000:+.1f} ± {shift.std_error_mm[i - 1] * 1000:.1f} µm"
+                          for i in shift.legs)
+        out.append(f"Zero shift in the held-out rows: between the measure session(s) and a later verify session the "
+                   f"legs' zero moved ({moved}); the machine was re-homed or a transducer's zero shifted (estimated on "
+                   "the verify rows, not fitted).")
+    out += [f"Leg {s.leg} reads {s.reading_mm:.4f} mm (its {s.extreme}) in {s.n_rows} of {s.n_total} rows: it may sit "
+            "on an end stop or a software limit, where its reading no longer follows the pose." for s in stops]
+    out += [f"The fit of {name} did not converge: figures that depend on it are approximate." for name in not_converged]
+    far = ratio is not None and ratio.ratio_final >= FAR_ABOVE_NOISE
+    if far and not shapes:
+        out.append(f"Unexplained: the residual stays {ratio.ratio_final:.1f}x the measurement noise and nothing in the "
+                   "library, nor a smooth or periodic shape of one leg, explains it.")
+    if not effects:
+        if ratio is None:
+            out.append("No missing physics found by the relative tests (noise level unknown: a residual can hide "
+                       "structure that no test here can see).")
+        elif ratio.ratio_final <= WITHIN_NOISE and noise.chosen is not None:
+            out.append("No missing physics: the geometric model explains this recording to within its measurement "
+                       f"noise (residual {ratio.ratio_final:.2f}x the noise; {noise.chosen.describe()}).")
+        else:
+            out.append(f"No missing physics is significant, but the residual is {ratio.ratio_final:.2f}x the noise: "
+                       "small structure below the detection limit, or more noise than the source says.")
+    return out
 
 
 def _noise_text(noise: NoiseLevel, ratio: NoiseComparison | None) -> str:
@@ -69,60 +141,62 @@ def _noise_text(noise: NoiseLevel, ratio: NoiseComparison | None) -> str:
     return text
 
 
-def compose(
-    effect: str, effects: list[str], chosen: list[TermGroup], steps: list[Step], params: dict[str, float],
-    std: dict[str, float], noise: NoiseLevel, ratio: NoiseComparison | None, shapes: list[Shape],
-    shift: SessionShift | None, rejected: dict[str, str], untestable: dict[str, str], ambiguous: tuple[str, ...],
-    before: AccuracySummary | None, after: AccuracySummary | None, findings: tuple[Finding, ...],
-) -> str:
-    """The explanation printed by `hilcal diagnose` and stored in the report."""
+@dataclass(frozen=True)
+class Answer:
+    """Everything the words are made from."""
+
+    effect: str
+    effects: list[str]
+    chosen: list[TermGroup]
+    steps: list[Step]
+    params: dict[str, float]
+    std: dict[str, float]
+    noise: NoiseLevel
+    ratio: NoiseComparison | None
+    shapes: list[Shape]
+    shift: SessionShift | None
+    rejected: dict[str, str]
+    untestable: dict[str, str]
+    aliases: tuple[Any, ...]
+    before: AccuracySummary | None
+    after: AccuracySummary | None
+    findings: tuple[Finding, ...]
+    named: tuple[NamedEffect, ...]
+    stops: tuple[EndStop, ...]
+    not_converged: tuple[str, ...]
+    compensation: Any
+
+
+def compose(a: Answer) -> str:
+    """The explanation printed by `hilcal diagnose` and stored in the report: the summary, then the evidence."""
+    parts = summary_sentences(a.named, a.shapes, a.aliases, a.shift, a.stops, a.not_converged, a.effects, a.ratio,
+                              a.noise, a.compensation)
+    return " ".join([*parts, evidence(a)])
+
+
+def evidence(a: Answer) -> str:
+    """The evidence behind the summary: steps, held-out figures, the noise comparison, what was rejected."""
     parts: list[str] = []
-    named = [g for g in chosen if g.kind == LIBRARY]
-    if named:
-        parts.append("Missing physics: " + " and ".join(g.title for g in named) + ".")
-        for g in named:
-            step = next(s for s in steps if s.key == g.key)
-            parts.append(_library_text(g, step, params, std))
-    if shapes:
-        parts.append("Unexplained (no library effect describes it), located and modelled: "
-                     + _shapes_text(shapes))
-    far = ratio is not None and ratio.ratio_final >= FAR_ABOVE_NOISE
-    if far and not shapes:
-        where = "; ".join(f.text for f in findings[:3]) or "no single leg or variable stands out"
-        parts.append(f"Unexplained: the residual is {ratio.ratio_final:.1f}x the measurement noise, and neither the "
-                     f"library nor a smooth or periodic shape of one leg in any variable explains it. Where it shows: "
-                     f"{where}.")
-    elif far:
-        parts.append(f"Structure remains: after the model the residual is still {ratio.ratio_final:.1f}x the noise.")
-    if not effects:
-        if ratio is None:
-            parts.append("No missing physics found by the relative tests (noise level unknown: relative tests only; "
-                         "a residual can hide structure that no test here can see).")
-        elif ratio.ratio_final <= WITHIN_NOISE:
-            parts.append("No missing physics found: the geometric model explains this recording to within its "
-                         f"measurement noise (residual {ratio.ratio_final:.2f}x the noise).")
-        else:
-            parts.append(f"No missing physics is significant, but the residual is {ratio.ratio_final:.2f}x the "
-                         "noise: small structure below the detection limit, or more noise than the source says.")
-    if steps and before is not None and after is not None:
-        parts.append(f"Held-out verify poses: RMS position {before.position_mm.rms:.4f} mm (geometry only) -> "
-                     f"{after.position_mm.rms:.4f} mm (with {', '.join(effects)}).")
-    parts.append(_noise_text(noise, ratio))
-    if ambiguous:
-        parts.append("On this data it cannot be told apart from: " + ", ".join(title_of(a) for a in ambiguous)
-                     + " (nearly the same signature).")
-    for name, reason in rejected.items():
+    for s in a.steps:
+        removed = f" (made {', '.join(s.removed)} redundant)" if s.removed else ""
+        parts.append(f"Step {s.index} added {s.key}{removed}: F = {s.f_statistic:.1f}, family-wise p = "
+                     f"{s.p_value:.3g}; leave-one-pose-out residual {_um(s.cv_before_mm)} -> {_um(s.cv_rms_mm)}.")
+    if a.steps and a.before is not None and a.after is not None:
+        parts.append(f"Held-out verify poses: RMS position {a.before.position_mm.rms:.4f} mm (geometry only) -> "
+                     f"{a.after.position_mm.rms:.4f} mm (with {', '.join(a.effects)}).")
+    far = a.ratio is not None and a.ratio.ratio_final >= FAR_ABOVE_NOISE
+    if far and a.shapes:
+        parts.append(f"Structure remains: after the model the residual is still {a.ratio.ratio_final:.1f}x the noise.")
+    if far and not a.shapes:
+        where = "; ".join(f.text for f in a.findings[:3]) or "no single leg or variable stands out"
+        parts.append(f"Where it shows: {where}.")
+    parts.append(_noise_text(a.noise, a.ratio))
+    for name, reason in a.rejected.items():
         parts.append(f"Not named as {title_of(name)}: {reason}.")
-    if "sensor_scale" in effects and "thermal_expansion" in untestable:
+    for name, reason in a.untestable.items():
+        if CANDIDATES_BY_NAME.get(name) is not None and "declares" in reason:
+            parts.append(f"Not tried: {title_of(name)} ({reason}).")
+    if "sensor_scale" in a.effects and "thermal_expansion" in a.untestable:
         parts.append("Thermal growth of the legs would look like a scale error here, and it could not be tested: "
-                     f"{untestable['thermal_expansion']}.")
-    if shift is not None and shift.legs:
-        moved = ", ".join(f"leg {i} {shift.shift_mm[i - 1] * 1000:+.1f} ± {shift.std_error_mm[i - 1] * 1000:.1f} µm"
-                          for i in shift.legs)
-        text = (f"Between the measure and the verify session the legs' zero moved ({moved}): the machine was "
-                "re-homed or a transducer's zero shifted.")
-        if shift.verify_without_shift is not None:
-            text += (f" Without that step the verify RMS would be {shift.verify_without_shift.position_mm.rms:.4f} mm "
-                     "(estimated on the verify rows themselves, so not held out).")
-        parts.append(text)
+                     f"{a.untestable['thermal_expansion']}.")
     return " ".join(p for p in parts if p)

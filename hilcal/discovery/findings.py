@@ -12,7 +12,7 @@ from scipy.stats import t as t_dist
 
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.regression import orth
-from hilcal.discovery.result import Finding, NoiseComparison, SessionShift
+from hilcal.discovery.result import EndStop, Finding, NoiseComparison, SessionShift
 from hilcal.kinematics import Geometry, inverse_jacobian, split_pose
 from hilcal.metrics import AccuracySummary
 from hilcal.recording import Recording
@@ -117,3 +117,22 @@ def session_shift(ctx: EffectContext, measure: np.ndarray, leg_res: np.ndarray, 
         offsets = np.where(later[verify][:, None], mean[None, :], 0.0)
         corrected = AccuracySummary.of(rec.meas[verify], predict(verify, offsets))
     return SessionShift(mean, se, p, legs, corrected)
+
+
+END_STOP_FRACTION = 0.1
+"""A leg whose reading equals its extreme in at least 10 % of the rows (and 3 rows) may sit on an end stop."""
+END_STOP_TOLERANCE_MM = 0.002
+
+
+def end_stops(rec: Recording, robot: Robot) -> tuple[EndStop, ...]:
+    """Legs whose reading sits at the same extreme value in many rows: an end stop or a software limit, where the
+    reading no longer follows the pose."""
+    out = []
+    n = rec.n
+    for i in range(6):
+        legs = rec.legs_mm[:, i]
+        for extreme, value in (("minimum", float(np.min(legs))), ("maximum", float(np.max(legs)))):
+            at = int(np.sum(np.abs(legs - value) <= END_STOP_TOLERANCE_MM))
+            if at >= max(3, END_STOP_FRACTION * n):
+                out.append(EndStop(i + 1, value, extreme, at, n))
+    return tuple(out)

@@ -96,6 +96,44 @@ class LeaveOneOut:
             out[rows] = np.inf if np.linalg.cond(A) > MAX_CONDITION else np.linalg.solve(A, resid[rows])
         return out
 
+    def residuals_batch(self, resid: np.ndarray, bases: list[np.ndarray]) -> np.ndarray:
+        """`residuals` for G models at once: in-sample residuals [G, 6N], each with its own added basis Qk."""
+        G = len(bases)
+        width = max((b.shape[1] for b in bases), default=0)
+        Qk = np.zeros((G, resid.shape[1], width))
+        for g, b in enumerate(bases):
+            Qk[g, :, :b.shape[1]] = b
+        out = np.empty_like(resid)
+        shaped = out.reshape(G, self.n, 6)
+        Qkc = Qk.reshape(G, self.n, 6, width)[:, self.singles]
+        A = np.eye(6) - self.H_single[None] - Qkc @ np.swapaxes(Qkc, 2, 3)
+        rc = resid.reshape(G, self.n, 6)[:, self.singles]
+        shaped[:, self.singles] = _solve_or_inf(A, rc)
+        for rows, Hm in zip(self.multi_rows, self.H_multi, strict=True):
+            Qr = Qk[:, rows]
+            A = np.eye(rows.size) - Hm[None] - Qr @ np.swapaxes(Qr, 1, 2)
+            out[:, rows] = _solve_or_inf(A, resid[:, rows])
+        return out
+
+
+def _solve_or_inf(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Batched solve of (I - H) e = r; clusters that the model fits exactly (leverage 1) get an infinite residual.
+
+    The leverage check (a determinant far below the product of the diagonal) is cheap; only those few matrices
+    get an eigenvalue test."""
+    sign, logdet = np.linalg.slogdet(A)
+    scale = np.sum(np.log(np.clip(np.diagonal(A, axis1=-2, axis2=-1), 1e-300, None)), axis=-1)
+    suspect = (sign <= 0) | (logdet - scale < -np.log(MAX_CONDITION) / 2)
+    degenerate = suspect.copy()
+    if suspect.any():
+        eig = np.linalg.eigvalsh(A[suspect])
+        degenerate[suspect] = eig[..., 0] <= eig[..., -1] / MAX_CONDITION
+    A = A.copy()
+    A[degenerate] = np.eye(A.shape[-1])
+    e = np.linalg.solve(A, b[..., None])[..., 0]
+    e[degenerate] = np.inf
+    return e
+
 
 def cluster_robust_covariance(J: np.ndarray, r: np.ndarray, n_poses: int) -> np.ndarray:
     """Sandwich covariance that trusts neither equal noise across poses nor independence within a pose."""

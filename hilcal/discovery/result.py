@@ -70,9 +70,60 @@ class CandidateResult:
     significant: bool = False
     rejected: str | None = None
     selected: bool = False
+    grades: list[str] = field(default_factory=list)
+    """Per parameter at the first step: typical, fault or impossible."""
 
     def to_json(self) -> dict[str, Any]:
         return {k: _finite(v) for k, v in self.__dict__.items()}
+
+
+@dataclass(frozen=True)
+class ParameterRow:
+    """One fitted effect parameter as an engineer reads it: which effect and leg, value, unit, uncertainty, grade."""
+
+    effect: str
+    name: str
+    leg: int | None
+    value: float
+    unit: str
+    std_error: float
+    grade: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {k: _finite(v) for k, v in self.__dict__.items()}
+
+
+@dataclass(frozen=True)
+class NamedEffect:
+    """A named library effect, graded: physics (typical values) or a fault of the set-up (what to check)."""
+
+    effect: str
+    title: str
+    grade: str
+    """'physics' or 'fault'."""
+    legs: tuple[int, ...]
+    """1-based legs where the effect is clearly non-zero (or faulty)."""
+    sentence: str
+    check: str
+    rows: tuple[ParameterRow, ...]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"effect": self.effect, "title": self.title, "grade": self.grade, "legs": list(self.legs),
+                "sentence": self.sentence, "check": self.check or None}
+
+
+@dataclass(frozen=True)
+class EndStop:
+    """A leg whose reading sits at its extreme in many rows: an end stop or a software limit."""
+
+    leg: int
+    reading_mm: float
+    extreme: str
+    n_rows: int
+    n_total: int
+
+    def to_json(self) -> dict[str, Any]:
+        return dict(self.__dict__)
 
 
 @dataclass(frozen=True)
@@ -189,6 +240,26 @@ class Diagnosis:
     leg_residuals_final_mm: np.ndarray = field(repr=False)
     context: EffectContext = field(repr=False)
     measure: np.ndarray = field(repr=False)
+    named: tuple[NamedEffect, ...] = ()
+    aliases: tuple[Any, ...] = ()
+    """Near-aliases of the named effects (hilcal.discovery.aliases.Alias)."""
+    end_stops: tuple[EndStop, ...] = ()
+    not_converged: tuple[str, ...] = ()
+    """Fits that stopped before converging."""
+    compensation: Any = None
+    """The exported compensation set (hilcal.discovery.corrections.CompensationSet)."""
+    summary: tuple[str, ...] = ()
+    """One sentence per finding: what, on which legs, how big, in the machine's own terms."""
+    evidence: str = ""
+    """The evidence behind the summary (steps, held-out figures, noise, rejections)."""
+
+    @property
+    def faults(self) -> tuple[NamedEffect, ...]:
+        return tuple(n for n in self.named if n.grade == "fault")
+
+    @property
+    def parameter_table(self) -> tuple[ParameterRow, ...]:
+        return tuple(r for n in self.named for r in n.rows)
 
     @property
     def cv_rms_effect_mm(self) -> float | None:
@@ -205,6 +276,14 @@ class Diagnosis:
         return {
             "effect": self.effect,
             "effects": list(self.effects),
+            "summary": list(self.summary),
+            "named": [n.to_json() for n in self.named],
+            "faults": [n.to_json() for n in self.faults],
+            "parameter_table": [r.to_json() for r in self.parameter_table],
+            "aliases": [a.to_json() for a in self.aliases],
+            "end_stops": [s.to_json() for s in self.end_stops],
+            "not_converged": list(self.not_converged),
+            "compensation": None if self.compensation is None else self.compensation.to_json(),
             "explanation": self.explanation,
             "parameters": self.parameters,
             "std_errors": self.std_errors,

@@ -7,8 +7,9 @@ whitened per pose. For every candidate group:
   a wild cluster bootstrap (Rademacher signs per pose, CR2 leverage-corrected residuals), which holds up
   under heteroscedastic and heavy-tailed noise, and a Gaussian Monte Carlo of the same statistics, which
   is exact for textbook noise; a group passes only if both are below its family's alpha;
-- the exact leave-one-cluster-out residual (PRESS) of the model with the group (held-out evidence);
-- for library physics, the fitted parameters and whether they are physically possible.
+- the exact leave-one-cluster-out residual (PRESS) of the model with the group, in mm: the held-out figure the
+  report prints, and the one the choice goes by;
+- for library physics, the fitted parameters graded against their physical ranges (typical, fault, impossible).
 The families are the library (most of the error budget: it is prior knowledge) and the generic terms
 (hundreds of shapes: strong evidence needed). Min-P accounts for the scan over knots and periods.
 """
@@ -20,14 +21,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import f as f_dist
 
+from hilcal.discovery.naming import describe, unit_of
 from hilcal.discovery.regression import LeaveOneOut, leverage_adjusted, orth
-from hilcal.discovery.term_groups import GENERIC, LIBRARY, TermGroup
+from hilcal.discovery.term_groups import FAULT, GENERIC, IMPOSSIBLE, LIBRARY, TermGroup
 
 PLAUSIBILITY_Z = 3.0
-"""A library fit is rejected when a parameter lies outside its physical range by more than 3 standard errors."""
+"""A parameter is graded outside a range only when it lies beyond it by more than 3 standard errors."""
 LIBRARY_PREFERENCE = 0.75
 """Named physics is preferred over a generic shape that explains at most 1/0.75 times as much held-out error."""
 LIBRARY_ALPHA_SHARE = 0.5
+RANK_TOL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -40,6 +43,8 @@ class ModelState:
     n_poses: int
     loo: LeaveOneOut
     press: float
+    press_mm: float
+    """Sum of squares of the left-out residuals in mm (rotations as mm at the platform's characteristic length)."""
 
     @property
     def dof(self) -> int:
@@ -51,12 +56,23 @@ class ModelState:
         r0 = r_w - Q @ (Q.T @ r_w)
         loo = LeaveOneOut(Q, n_poses, clusters)
         e = loo.residuals(r0)
-        return cls(r0, Q, W, n_poses, loo, float(e @ e))
+        e_mm = _unwhiten(W, e, n_poses)
+        return cls(r0, Q, W, n_poses, loo, float(e @ e), float(np.sum(e_mm**2)))
 
     def cv_rms(self, e: np.ndarray) -> tuple[float, float]:
         """(whitened RMS, RMS in mm) of left-out residuals."""
-        e_mm = np.einsum("ij,cj->ci", np.linalg.inv(self.W), e.reshape(self.n_poses, 6))
+        e_mm = _unwhiten(self.W, e, self.n_poses)
         return float(np.sqrt(np.mean(e**2))), float(np.sqrt(np.mean(e_mm**2)))
+
+    @property
+    def cv_mm(self) -> float:
+        return float(np.sqrt(self.press_mm / self.r0.size))
+
+
+def _unwhiten(W: np.ndarray, e: np.ndarray, n_poses: int) -> np.ndarray:
+    """Whitened residuals [..., 6N] back in mm, per pose."""
+    shaped = e.reshape(*e.shape[:-1], n_poses, 6)
+    return (shaped @ np.linalg.inv(W).T).reshape(e.shape)
 
 
 @dataclass(frozen=True)
@@ -70,13 +86,22 @@ class GroupTest:
     p_wild: float = float("nan")
     p_gauss: float = float("nan")
     press_gain: float = 0.0
+    """Whitened PRESS gain (kept for the record; the choice goes by the gain in mm)."""
     cv_rms_whitened: float = float("nan")
     cv_rms_mm: float = float("nan")
+    press_gain_mm: float = 0.0
+    """Fall of the left-out sum of squares in mm^2 when the group is added: the held-out gain the choice uses."""
     estimate: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     std_errors: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     signature: np.ndarray | None = field(default=None, repr=False)
     rejected: str | None = None
     alpha: float = 0.05
+    grades: tuple[str, ...] = ()
+    """Library groups: per parameter, typical / fault / impossible."""
+    rss_w: float = float("nan")
+    """Whitened residual sum of squares with the group (for the evidence of near-aliases)."""
+    log_det_information: float = float("nan")
+    """log det of the group's whitened information X'X in parameter units (the Occam factor)."""
 
     @property
     def p_value(self) -> float:
@@ -89,29 +114,81 @@ class GroupTest:
 
     @property
     def eligible(self) -> bool:
-        return self.significant and self.press_gain > 0 and self.rejected is None
+        return self.significant and self.press_gain_mm > 0 and self.rejected is None
+
+    @property
+    def is_fault(self) -> bool:
+        return FAULT in self.grades
+
+    def log_evidence(self) -> float:
+        """Laplace approximation of the log marginal likelihood with the group's graded prior (whitened units)."""
+        rng = self.group.physical_range
+        if rng is None or not np.isfinite(self.log_det_information):
+            return float("nan")
+        q = self.estimate.size
+        return float(-0.5 * self.rss_w + 0.5 * q * np.log(2 * np.pi) - 0.5 * self.log_det_information
+                     + rng.log_prior(self.estimate, self.std_errors))
 
 
-def _plausibility(group: TermGroup, estimate: np.ndarray, se: np.ndarray) -> str | None:
+def _impossible(group: TermGroup, estimate: np.ndarray, se: np.ndarray, grades: list[str]) -> str | None:
     rng = group.physical_range
-    if rng is None:
+    bad = [k for k, g in enumerate(grades) if g == IMPOSSIBLE]
+    if rng is None or not bad:
         return None
-    bad = rng.violations(estimate, se, PLAUSIBILITY_Z)
-    if not bad:
-        return None
-    parts = [f"{group.names[i]} = {estimate[i]:+.4g} ± {se[i]:.2g}" for i in bad[:3]]
-    return (f"fitted {', '.join(parts)} lies outside the physical range [{rng.low[bad[0]]:.4g}, "
+    parts = [f"{describe(group.names[i])} {estimate[i]:+.3g} ± {se[i]:.2g} {unit_of(group.names[i])}" for i in bad[:3]]
+    return (f"fitted {', '.join(parts)} lies outside the physically possible range [{rng.low[bad[0]]:.4g}, "
             f"{rng.high[bad[0]]:.4g}] ({rng.why})")
 
 
-def _min_p_adjust(p_obs: np.ndarray, p_star: np.ndarray, families: np.ndarray) -> np.ndarray:
-    """Single-step min-P adjusted p-values: P*(min over the family of p* <= p_obs), per family."""
+def _min_p_adjust(p_obs: np.ndarray, f_star: np.ndarray, ranks: np.ndarray, dof: int,
+                  families: np.ndarray) -> np.ndarray:
+    """Single-step min-P adjusted p-values: P*(min over the family of p* <= p_obs), per family.
+
+    Within one family, groups of equal rank share a null distribution, so their smallest p* in a draw is the
+    p-value of their largest F*: the F survival function is evaluated per rank class, not per group."""
     out = np.ones_like(p_obs)
     for fam in np.unique(families):
         rows = families == fam
-        min_star = np.min(p_star[rows], axis=0)
+        min_star = np.ones(f_star.shape[1])
+        for q in np.unique(ranks[rows]):
+            cls = rows & (ranks == q)
+            min_star = np.minimum(min_star, f_dist.sf(np.max(f_star[cls], axis=0), q, dof - q))
         counts = np.sum(min_star[None, :] <= p_obs[rows, None], axis=1)
         out[rows] = (1 + counts) / (min_star.size + 1)
+    return out
+
+
+def _bases(Q: np.ndarray, dof: int, columns: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """(index, projected columns Xt, orthonormal basis Qk) of every group that adds something, batched by width.
+
+    The basis comes from the eigen-decomposition of the small Gram matrix of the column-scaled projection
+    (Qk = Xs V / sqrt(lambda)); a group whose Gram matrix is rank-deficient falls back to an SVD."""
+    by_width: dict[int, list[int]] = {}
+    for k, X in enumerate(columns):
+        by_width.setdefault(X.shape[1], []).append(k)
+    out = []
+    Qt = Q.T
+    for width, idx in by_width.items():
+        X = np.stack([columns[k] for k in idx])
+        Xt = X - Q @ (Qt @ X)
+        norm_x = np.linalg.norm(X, axis=(1, 2))
+        norm_t = np.linalg.norm(Xt, axis=(1, 2))
+        col = np.linalg.norm(Xt, axis=1)
+        scaled = Xt / np.where(col > 0, col, 1.0)[:, None, :]
+        lam, V = np.linalg.eigh(np.swapaxes(scaled, 1, 2) @ scaled)
+        for j, k in enumerate(idx):
+            if norm_t[j] <= 1e-7 * max(norm_x[j], 1e-300) or not np.any(col[j] > 0) or lam[j, -1] <= 0:
+                continue
+            s = np.sqrt(np.clip(lam[j, ::-1], 0.0, None))
+            rank = int(np.sum(s > s[0] * RANK_TOL))
+            if rank == 0 or rank >= dof - 1:
+                continue
+            if rank == width and np.all(col[j] > 0) and s[-1] > s[0] * 1e-4:
+                basis = scaled[j] @ (V[j] / np.sqrt(lam[j]))
+            else:
+                basis = orth(Xt[j], RANK_TOL)
+            out.append((k, Xt[j], basis))
+    out.sort(key=lambda item: item[0])
     return out
 
 
@@ -126,15 +203,7 @@ def assess(state: ModelState, groups: list[TermGroup], columns: list[np.ndarray]
         alphas[GENERIC] = alpha
     if not any(g.kind == GENERIC for g in groups):
         alphas[LIBRARY] = alpha
-    kept: list[tuple[TermGroup, np.ndarray, np.ndarray]] = []
-    for group, X in zip(groups, columns, strict=True):
-        Xt = X - Q @ (Q.T @ X)
-        if np.linalg.norm(Xt) <= 1e-7 * max(np.linalg.norm(X), 1e-300):
-            continue
-        Qk = orth(Xt, rel_tol=1e-6)
-        if Qk.shape[1] == 0 or Qk.shape[1] >= dof - 1:
-            continue
-        kept.append((group, Xt, Qk))
+    kept = [(groups[k], Xt, Qk) for k, Xt, Qk in _bases(Q, dof, columns)]
     if not kept:
         return []
     ranks = np.array([Qk.shape[1] for _, _, Qk in kept])
@@ -155,39 +224,50 @@ def assess(state: ModelState, groups: list[TermGroup], columns: list[np.ndarray]
         rss = np.sum(R**2, axis=0)
         e_star = np.add.reduceat((Q_all.T @ R) ** 2, offsets, axis=0)
         f_star = (e_star / ranks[:, None]) / ((rss[None, :] - e_star) / (dof - ranks)[:, None])
-        p_star = f_dist.sf(f_star, ranks[:, None], (dof - ranks)[:, None])
-        adjusted.append(_min_p_adjust(p_obs, p_star, families))
+        adjusted.append(_min_p_adjust(p_obs, f_star, ranks, dof, families))
 
+    fitted_all = [Qk @ (Qk.T @ r0) for _, _, Qk in kept]
+    left_out = state.loo.residuals_batch(np.stack([r0 - f for f in fitted_all]), [Qk for _, _, Qk in kept])
+    left_out_mm = _unwhiten(state.W, left_out, state.n_poses)
+    press_w = np.sum(left_out**2, axis=1)
+    press_mm_all = np.sum(left_out_mm**2, axis=1)
     tests = []
-    for k, (group, Xt, Qk) in enumerate(kept):
-        fitted = Qk @ (Qk.T @ r0)
-        e = state.loo.residuals(r0 - fitted, Qk)
-        cv_w, cv_mm = state.cv_rms(e)
-        estimate, se, rejected = np.zeros(0), np.zeros(0), None
+    for k, (group, Xt, _) in enumerate(kept):
+        cv_w = float(np.sqrt(press_w[k] / m))
+        cv_mm = float(np.sqrt(press_mm_all[k] / m))
+        press_mm = float(press_mm_all[k])
+        estimate, se, rejected, grades = np.zeros(0), np.zeros(0), None, ()
+        rss_w, log_det = float("nan"), float("nan")
         if group.kind == LIBRARY:
             pinv = np.linalg.pinv(Xt)
             estimate = -pinv @ r0
             sigma2 = (rss0 - explained[k]) / (dof - ranks[k])
             se = np.sqrt(np.clip(np.diag(sigma2 * pinv @ pinv.T), 0.0, None))
-            rejected = _plausibility(group, estimate, se)
+            grade_list = ([] if group.physical_range is None
+                          else group.physical_range.grades(estimate, se, PLAUSIBILITY_Z))
+            grades = tuple(grade_list)
+            rejected = _impossible(group, estimate, se, grade_list)
+            rss_w = float(rss0 - explained[k])
+            sign, log_det = np.linalg.slogdet(Xt.T @ Xt)
+            log_det = float(log_det) if sign > 0 else float("nan")
         tests.append(GroupTest(
             group, int(ranks[k]), float(f_obs[k]), float(p_obs[k]), float(adjusted[0][k]), float(adjusted[1][k]),
-            state.press - float(e @ e), cv_w, cv_mm, estimate, se,
-            fitted if group.kind == LIBRARY else None, rejected, alphas[group.kind],
+            state.press - float(press_w[k]), cv_w, cv_mm, state.press_mm - press_mm, estimate, se,
+            fitted_all[k] if group.kind == LIBRARY else None, rejected, alphas[group.kind], grades, rss_w, log_det,
         ))
     return tests
 
 
 def choose(tests: list[GroupTest]) -> GroupTest | None:
-    """The eligible group with the largest held-out gain; named physics wins when it explains nearly as much."""
+    """The eligible group with the largest held-out gain in mm; named physics wins when it explains nearly as much."""
     eligible = [t for t in tests if t.eligible]
     if not eligible:
         return None
-    best = max(eligible, key=lambda t: t.press_gain)
+    best = max(eligible, key=lambda t: t.press_gain_mm)
     library = [t for t in eligible if t.group.kind == LIBRARY]
     if library:
-        best_library = max(library, key=lambda t: t.press_gain)
-        if best_library.press_gain >= LIBRARY_PREFERENCE * best.press_gain:
+        best_library = max(library, key=lambda t: t.press_gain_mm)
+        if best_library.press_gain_mm >= LIBRARY_PREFERENCE * best.press_gain_mm:
             return best_library
     return best
 

@@ -92,7 +92,8 @@ def _shape(robot: Robot, ctx: EffectContext, final: IdentificationResult, cov: n
     poses, proposed_band = None, None
     if not pinned and g.variable in POSE_VARIABLES:
         aug = augment(robot, final.geometry(robot), final.length_mm, J.T @ J, sigma2,
-                      lambda c: stack_phi(chosen, c), block, band_of, PIN_FRACTION * amplitude, seed)
+                      lambda c: stack_phi(chosen, c.at_recorded_state(ctx)), block, band_of,
+                      PIN_FRACTION * amplitude, seed)
         poses = aug.poses
         proposed_band = float(aug.predicted_band_mm[-1]) if aug.predicted_band_mm.size else None
     elif not pinned:

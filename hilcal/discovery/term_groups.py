@@ -12,6 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import norm
 
 from hilcal.discovery.context import EffectContext
 
@@ -19,20 +20,71 @@ LIBRARY = "library"
 GENERIC = "generic"
 
 
+TYPICAL = "typical"
+FAULT = "fault"
+IMPOSSIBLE = "impossible"
+PRIOR_FAULT_WEIGHT = 0.1
+"""Prior share of a set-up fault (abnormal but possible value) against a typical value, per parameter: machines
+come to calibration because something is off, so a fault is not rare."""
+
+
 @dataclass(frozen=True)
 class PhysicalRange:
-    """The physically possible values of a library effect's parameters, and why."""
+    """Graded values of a library effect's parameters: typical (physics), abnormal but possible (a fault of the
+    set-up, with what to check) and impossible (outside ``low``-``high``: never named). Each bound says why."""
 
     low: np.ndarray
     high: np.ndarray
     why: str
+    typical_low: np.ndarray | None = None
+    typical_high: np.ndarray | None = None
+    typical_why: str = ""
+    fault_check: str = ""
+    """What a value outside the typical range means and what to check on the machine."""
 
     def violations(self, values: np.ndarray, std_errors: np.ndarray, z: float) -> list[int]:
-        """Indices of parameters outside the range by more than z standard errors (clear evidence)."""
+        """Indices of parameters outside the possible range by more than z standard errors (clear evidence)."""
         se = np.where(np.isfinite(std_errors), std_errors, 0.0)
         below = values < self.low - z * se
         above = values > self.high + z * se
         return [int(i) for i in np.flatnonzero(below | above)]
+
+    def typical_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        if self.typical_low is None or self.typical_high is None:
+            return self.low, self.high
+        return self.typical_low, self.typical_high
+
+    def grades(self, values: np.ndarray, std_errors: np.ndarray, z: float) -> list[str]:
+        """Per parameter: impossible (outside the possible range by > z SE), fault (outside the typical range by
+        > z SE) or typical."""
+        se = np.where(np.isfinite(std_errors), std_errors, 0.0)
+        lo, hi = self.typical_bounds()
+        out = []
+        for k, v in enumerate(values):
+            if v < self.low[k] - z * se[k] or v > self.high[k] + z * se[k]:
+                out.append(IMPOSSIBLE)
+            elif v < lo[k] - z * se[k] or v > hi[k] + z * se[k]:
+                out.append(FAULT)
+            else:
+                out.append(TYPICAL)
+        return out
+
+    def log_prior(self, values: np.ndarray, std_errors: np.ndarray) -> float:
+        """log of the prior density averaged over each parameter's posterior N(value, se^2): flat within the
+        typical range (weight 1 - PRIOR_FAULT_WEIGHT) and within the possible range (PRIOR_FAULT_WEIGHT), zero
+        outside (a Laplace approximation of the evidence uses this)."""
+        se = np.maximum(np.where(np.isfinite(std_errors), std_errors, 0.0), 1e-12 * (1.0 + np.abs(values)))
+        lo, hi = self.typical_bounds()
+
+        def mass(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            return np.clip(norm.cdf((b - values) / se) - norm.cdf((a - values) / se), 0.0, 1.0)
+
+        w_typ = 1.0 - PRIOR_FAULT_WEIGHT if self.typical_low is not None else 1.0
+        density = w_typ * mass(lo, hi) / np.maximum(hi - lo, 1e-300)
+        if self.typical_low is not None:
+            density = density + PRIOR_FAULT_WEIGHT * mass(self.low, self.high) / np.maximum(self.high - self.low,
+                                                                                             1e-300)
+        return float(np.sum(np.log(np.maximum(density, 1e-300))))
 
 
 @dataclass(frozen=True)

@@ -257,9 +257,12 @@ def estimate_route(geom: Geometry, start_pose: np.ndarray, phases: Sequence[tupl
     return TimeEstimate(tuple(out))
 
 
-def calibration_phases(measure_poses: np.ndarray, verify_poses: np.ndarray) -> list[tuple[str, np.ndarray]]:
-    """The calibration procedure's route: measure, verify, then the verify poses again after the upload."""
-    return [("measure", measure_poses), ("verify", verify_poses), ("verify_after", verify_poses)]
+def calibration_phases(measure_poses: np.ndarray, verify_poses: np.ndarray,
+                       acceptance_poses: np.ndarray | None = None) -> list[tuple[str, np.ndarray]]:
+    """The calibration procedure's route: measure, verify, then the verify poses again after the upload, then the
+    acceptance test's poses in visiting order (phase "acceptance"), if any."""
+    phases = [("measure", measure_poses), ("verify", verify_poses), ("verify_after", verify_poses)]
+    return phases if acceptance_poses is None else [*phases, ("acceptance", acceptance_poses)]
 
 
 def format_minutes(seconds: float) -> str:

@@ -25,6 +25,8 @@ from matplotlib.figure import Figure
 
 from hilcal.identification import IdentificationResult
 from hilcal.metrics import AccuracySummary, Indicators
+from hilcal.reports.certificate import signoff_html
+from hilcal.reports.drift import drift_html
 from hilcal.reports.timing import time_html
 
 INDICATORS = ("max", "range", "mean", "rms")
@@ -68,6 +70,11 @@ class RunReport:
     """``hilcal.reports.timing.time_section``: estimated against actual time per phase."""
     links: dict | None = None
     """Per link (controller, cmm, modbus): holds, retakes, total and longest hold in s, lost or not."""
+    drift: dict | None = None
+    """``hilcal.drift.DriftResult.to_json()``: the machine's parameters since its earlier calibrations."""
+    signoff: dict | None = None
+    """report.json's sign-off keys (operator, station, machine, software, instrument, environment, method,
+    uncertainty, iso9283, certificate): ``procedures.certificate.signoff_section``."""
 
     def __post_init__(self) -> None:
         if self.identifications and self.chosen not in self.identifications:
@@ -198,6 +205,8 @@ def report_json(r: RunReport) -> dict[str, Any]:
         "warnings": list(r.warnings),
         "machine_time": r.machine_time,
         "links": r.links,
+        "drift": r.drift,
+        **(r.signoff or {}),
     }
     return _jsonable(out)
 
@@ -471,6 +480,7 @@ def report_html(r: RunReport) -> str:
 <p class="status {'ok' if ok else 'bad'}">status: {_esc(r.status)}; parameters uploaded: {'yes' if r.uploaded else 'no'}
 </p>
 {f'<div class="warn"><b>warnings</b><ul>{warnings}</ul></div>' if warnings else ''}
+{signoff_html(r.signoff)}
 <table class="kv"><tr><th>robot</th><td>{_esc(r.robot_name)}</td></tr>
 <tr><th>plan SHA-256</th><td><code>{_esc(r.plan_sha256)}</code></td></tr>
 <tr><th>estimator requested / uploaded</th><td>{_esc(r.estimator)} / {_esc(r.chosen or 'none')}</td></tr>
@@ -489,6 +499,7 @@ def report_html(r: RunReport) -> str:
 {f'<ul>{violations}</ul>' if violations else ''}
 <h2>Compensation</h2>{_value_html(_jsonable(r.compensation))}
 <h2>Upload</h2>{_upload_html(r)}
+<h2>Drift since the machine's last calibration</h2>{drift_html(r.drift)}
 </body></html>"""
 
 

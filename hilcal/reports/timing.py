@@ -14,7 +14,7 @@ from typing import Any
 from hilcal.planning.machine_time import TimeEstimate, format_minutes
 
 PHASE_LABELS = {"measure": "measure poses", "verify": "verify poses (before)", "verify_after": "verify poses (after)",
-                "return_home": "back home"}
+                "acceptance": "ISO 9283 acceptance test", "return_home": "back home"}
 
 
 def time_section(estimate: TimeEstimate, actual_s: Mapping[str, float | None], timing: Mapping[str, float],

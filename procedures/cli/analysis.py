@@ -25,6 +25,7 @@ from procedures.cli.common import (
     robot_or_fail,
     write_simulated_recording,
 )
+from procedures.cli.signoff import AcceptanceOption, CyclesOption
 
 
 def _parameter_table(outcome: CalibrationOutcome) -> Table:
@@ -108,7 +109,17 @@ def diagnose(
         print(json.dumps(diag.to_json(), indent=2))
         return
     out.print(f"[bold]effect:[/] {diag.effect}   [bold]effects:[/] {', '.join(diag.effects) or 'none'}")
-    out.print(diag.explanation, highlight=False)
+    for sentence in diag.summary:
+        out.print(f"  - {sentence}", highlight=False, markup=False)
+    if diag.parameter_table:
+        params = Table(title="named effects: parameters")
+        for col in ("effect", "leg", "value", "unit", "± std error", "grade"):
+            params.add_column(col, justify="left" if col in ("effect", "unit", "grade") else "right")
+        for r in diag.parameter_table:
+            params.add_row(r.effect, "" if r.leg is None else str(r.leg), f"{r.value:+.4g}", r.unit,
+                           f"{r.std_error:.2g}", r.grade)
+        out.print(params)
+    out.print(diag.evidence, highlight=False, markup=False)
     if diag.steps:
         table = Table(title="selection steps")
         for col in ("step", "group", "F", "p", "CV µm", "verify RMS mm", "removed"):
@@ -166,19 +177,27 @@ def design(
     plan_out: Annotated[Path | None, typer.Option("--plan-out", help="write the calibration plan (JSON) for "
                                                   "`hilcal run --plan`")] = None,
     n_verify: Annotated[int, typer.Option("--n-verify", help="verification poses of the plan")] = 24,
+    acceptance: AcceptanceOption = None,
+    cycles: CyclesOption = 30,
 ) -> None:
     """D-optimal measurement poses (the paper's four pose sets), the calibration plan's order and machine time.
+
+    With --acceptance iso9283: the ISO 9283 test poses P1-P5 and the acceptance test's machine time instead.
 
     With --max-minutes: the most informative plan that fits, with its D-efficiency and predicted verify error
     (the paper's pose sets are then left out).
     """
     from hilcal.planning import design as dsg
     from procedures.cli.plan_time import design_plan, timing_or_fail
+    from procedures.cli.signoff import print_acceptance_design
 
     if noise_mm <= 0 or n_verify < 1 or (max_minutes is not None and max_minutes <= 0):
         fail("--noise-mm, --n-verify and --max-minutes must be positive")
     rb = robot_or_fail(robot)
     timing = timing_or_fail(station)
+    if acceptance is not None:
+        print_acceptance_design(rb, seed, timing, cycles)
+        return
     if max_minutes is not None and out_csv is None:
         design_plan(rb, seed, timing, max_minutes, noise_mm, plan_out, n_verify)
         return

@@ -1,7 +1,8 @@
 """The `hilcal` command line: run, panel, sim, history, upload, rollback, identify, diagnose, identifiability,
-design, simulate, demo.
+design, simulate, import, robot-from-geometry, demo.
 
-Exit codes: 0 ok, 2 bad input (robot file, recording, options). Units: mm and degrees.
+Exit codes: 0 ok, 2 bad input (robot file, recording, options), 3 a run stopped (resumable),
+4 a run complete but not accepted (its sign-off verdict). Units: mm and degrees.
 """
 
 from __future__ import annotations
@@ -14,9 +15,12 @@ import structlog
 import typer
 
 from procedures.cli.analysis import design, diagnose, identifiability, identify, simulate
-from procedures.cli.operator import history, rollback, run, upload
+from procedures.cli.importing import import_command, robot_from_geometry_command
+from procedures.cli.operator import rollback, run, upload
 from procedures.cli.panel import panel
+from procedures.cli.records import drift_command, history, records_app
 from procedures.cli.rig import demo, sim_command
+from procedures.cli.signoff import certificate
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
 
@@ -35,12 +39,17 @@ app.command()(run)
 app.command()(panel)
 app.command("sim")(sim_command)
 app.command()(history)
+app.command()(certificate)
+app.command("drift")(drift_command)
+app.add_typer(records_app, name="records")
 app.command()(upload)
 app.command()(rollback)
 app.command()(diagnose)
 app.command()(identifiability)
 app.command()(design)
 app.command()(simulate)
+app.command("import")(import_command)
+app.command("robot-from-geometry")(robot_from_geometry_command)
 app.command()(demo)
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@ from typing import Annotated, NoReturn
 import numpy as np
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from hilcal.metrics import AccuracySummary
@@ -37,7 +38,7 @@ RobotOption = Annotated[Path | None, typer.Option("--robot", help="robot TOML fi
 
 def fail(message: str) -> NoReturn:
     """Print the message as an error and exit with code 2 (bad input)."""
-    err.print(f"[bold red]error:[/] {message}", highlight=False)
+    err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(BAD_INPUT)
 
 

@@ -1,4 +1,4 @@
-"""Commands for the operator at the machine: run (and resume), history, upload, rollback."""
+"""Commands for the operator at the machine: run (and resume), upload, rollback (history: ``cli/records.py``)."""
 
 from __future__ import annotations
 
@@ -11,13 +11,15 @@ import typer
 from hilcal.reports.run import links_lines
 from procedures.cli.common import EstimatorChoice, RobotOption, err, fail, out
 from procedures.cli.panel import DEFAULT_PORT, PortOption
+from procedures.cli.records import RecordsOption, open_records
+from procedures.cli.signoff import AcceptanceOption, CyclesOption, ask_operator
 
 
 def run(
     out_dir: Annotated[Path, typer.Option("--out", help="run folder: journal, logs, recording, report")],
     sim: Annotated[bool, typer.Option("--sim", help="start the simulated devices and run against them")] = False,
     station: Annotated[Path | None, typer.Option(help="station TOML (CAN, Modbus, CMM, robot, timing); with --sim "
-                                                 "only its [timing] is used")] = None,
+                                                 "only its [timing] and sign-off settings are used")] = None,
     sim_config: Annotated[Path | None, typer.Option(help="simulator TOML for --sim")] = None,
     resume: Annotated[str | None, typer.Option(help="continue the interrupted run RUN_ID in --out")] = None,
     yes: Annotated[bool, typer.Option("--yes", help="unattended: answer every prompt yes")] = False,
@@ -26,15 +28,21 @@ def run(
     robot: RobotOption = None,
     plan: Annotated[Path | None, typer.Option(help="re-run a saved plan.json")] = None,
     seed: int = 0,
-    records: Annotated[Path | None, typer.Option(help="records database (default $HILCAL_RECORDS)")] = None,
-    operator: Annotated[str | None, typer.Option(help="name recorded with the run")] = None,
+    records: RecordsOption = None,
+    operator: Annotated[str | None, typer.Option(help="name recorded with the run and on its certificate "
+                                                  "(asked for if not given)")] = None,
+    acceptance: AcceptanceOption = None,
+    cycles: CyclesOption = 30,
     panel: Annotated[bool, typer.Option("--panel", help="serve the operator panel (a web page) for this run")] = False,
     port: PortOption = DEFAULT_PORT,
     panel_host: Annotated[str, typer.Option(help="panel address; other than the loopback needs the printed token")] = (
         "127.0.0.1"),
     panel_linger_min: Annotated[float, typer.Option(help="keep the panel up this long after the run", min=0)] = 30.0,
 ) -> None:
-    """Measure, identify, upload (transactionally) and verify: the whole calibration at the machine."""
+    """Measure, identify, upload (transactionally), verify and sign off: the whole calibration at the machine.
+
+    Exit codes: 0 complete (and accepted), 2 bad input, 3 stopped (resumable), 4 complete but not accepted.
+    """
     from procedures.cli.panel import run_with_panel
     from procedures.cli.plan_time import print_run_estimate, timing_or_fail
     from procedures.cli.sim_station import SIM_TIMING, sim_station
@@ -43,10 +51,13 @@ def run(
     if resume is None and not sim and station is None:
         fail("give --station FILE for real hardware, or --sim for the simulated devices")
     timing = (timing_or_fail(station) if station is not None else SIM_TIMING) if sim else None
+    if operator is None and resume is None and not yes and not panel:
+        operator = ask_operator()
     request = RunRequest(out_dir=out_dir, sim=sim, station_path=station, sim_config=sim_config, resume=resume,
                          yes=yes, estimator=estimator.value, force=force, robot_path=robot, plan_path=plan,
                          seed=seed, records_path=records, operator=operator, sim_station=sim_station, timing=timing,
-                         on_estimate=print_run_estimate)
+                         on_estimate=print_run_estimate, acceptance=None if acceptance is None else acceptance.value,
+                         cycles=cycles)
 
     def execute(confirm, session=None):
         result = execute_run(request, confirm, session)
@@ -78,22 +89,33 @@ def _params_client(station: Path):
                             device_id=mb.device_id, timeout_s=mb.timeout_s)
 
 
-def _records(path: Path | None):
-    from procedures.records import Records
-    from procedures.runner import default_records_path
+def _records(station: Path, records: str | None):
+    """The records: --records, else the station file's, else the default (exit 2/3 if unusable)."""
+    from procedures.station import StationConfigError, load_station
 
-    return Records(path or default_records_path())
+    if records is None:
+        try:
+            records = load_station(station).records_target()
+        except StationConfigError as e:
+            fail(str(e))
+    return open_records(records)
 
 
-def history(
-    limit: int = 20,
-    records: Annotated[Path | None, typer.Option(help="records database (default $HILCAL_RECORDS)")] = None,
-) -> None:
-    """Past runs, parameter sets and uploads from the calibration records."""
-    from procedures.records import format_history
+def _identity(station: Path) -> dict[str, str | None]:
+    """The machine and station an upload or rollback is recorded with (from the station file)."""
+    from hilcal.robot import RobotFileError, load_robot
+    from procedures.records import machine_identity
+    from procedures.station import StationConfigError, load_station
 
-    with _records(records) as db:
-        out.print(format_history(db.history(limit)), highlight=False)
+    try:
+        config = load_station(station)
+    except StationConfigError as e:
+        fail(str(e))
+    try:
+        robot_name: str | None = load_robot(config.robot).name
+    except RobotFileError:
+        robot_name = None  # the upload needs only [modbus]; the record then names no machine
+    return {"machine": machine_identity(robot_name, config.machine.serial), "station": config.name}
 
 
 def upload(
@@ -101,18 +123,20 @@ def upload(
     station: Annotated[Path, typer.Option(help="station TOML (its [modbus] section is used)")],
     save: Annotated[bool, typer.Option(help="also save to non-volatile memory")] = False,
     yes: Annotated[bool, typer.Option("--yes", help="do not ask for confirmation")] = False,
-    records: Annotated[Path | None, typer.Option(help="records database")] = None,
+    records: RecordsOption = None,
     operator: Annotated[str | None, typer.Option(help="name recorded with the upload")] = None,
 ) -> None:
     """Stand-alone controller parameter upload: validate, show the diff, confirm, upload, read back, record."""
     from drivers.controller_modbus import ParamsError
     from procedures.records import ParameterFileError, UploadDeclined, format_diff, upload_parameter_file
 
+    identity = _identity(station)
+    db = _records(station, records)
     client = _params_client(station)
     try:
-        with _records(records) as db:
+        with db:
             result = upload_parameter_file(client, params_file, db, operator or "", save, yes,
-                                           lambda text: typer.confirm(text, default=False))
+                                           lambda text: typer.confirm(text, default=False), **identity)
     except ParameterFileError as e:
         fail(str(e))
     except UploadDeclined as e:
@@ -130,17 +154,19 @@ def upload(
 
 def rollback(
     station: Annotated[Path, typer.Option(help="station TOML (its [modbus] section is used)")],
-    records: Annotated[Path | None, typer.Option(help="records database")] = None,
+    records: RecordsOption = None,
     operator: Annotated[str | None, typer.Option(help="name recorded with the rollback")] = None,
 ) -> None:
     """Restore the controller's previous parameter set (its backup bank), and record it."""
     from drivers.controller_modbus import ParamsError
     from procedures.records import rollback_controller
 
+    identity = _identity(station)
+    db = _records(station, records)
     client = _params_client(station)
     try:
-        with _records(records) as db:
-            record = rollback_controller(client, db, operator or "")
+        with db:
+            record = rollback_controller(client, db, operator or "", **identity)
     except ParamsError as e:
         err.print(f"[bold red]rollback failed:[/] {e}", highlight=False)
         raise typer.Exit(3) from None

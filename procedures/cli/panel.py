@@ -20,7 +20,7 @@ def say(text: str) -> None:
 
 
 def run_with_panel(execute: Callable[[Any], Any], *, host: str, port: int, operator: str | None, yes: bool,
-                   records: Path, linger_min: float) -> Any:
+                   records: str | Path, linger_min: float) -> Any:
     """Serve the panel around `execute(session)` (the run); keep it up afterwards unless unattended."""
     from procedures.panel.server import PanelStartError
     from procedures.panel.session import PanelSession
@@ -40,7 +40,8 @@ def run_with_panel(execute: Callable[[Any], Any], *, host: str, port: int, opera
 
 
 def panel(
-    records: Annotated[Path | None, typer.Option(help="records database (default $HILCAL_RECORDS)")] = None,
+    records: Annotated[str | None, typer.Option(help="records database: a SQLite file path or a URL "
+                                                "(postgresql+psycopg://user@host/db); default $HILCAL_RECORDS")] = None,
     port: PortOption = DEFAULT_PORT,
     host: Annotated[str, typer.Option(help="address; other than the loopback needs the printed token")] = (
         "127.0.0.1"),

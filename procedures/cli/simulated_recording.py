@@ -6,9 +6,9 @@ into a measured pose) and the leg temperature sensor is read into the ``temp_c``
 rig's clock at the measurement.
 
 Options reproduce the conditions of recordings made elsewhere (see ``RecordingOptions``): measure and verify
-rows in two sessions on different days (the clock jumps, the machine is powered on again and reaches home by
-a motion that is not recorded), a start from an unknown motion history, and files without the commanded
-pose (empty ``cmd_*``), without ``temp_c`` or without ``sphere_fit_rms_mm``.
+rows in two sessions on different days, and measure rows from several sessions (the clock jumps, the machine is
+powered on again and reaches home by a motion that is not recorded), a start from an unknown motion history, and
+files without the commanded pose (empty ``cmd_*``), without ``temp_c`` or without ``sphere_fit_rms_mm``.
 """
 
 from __future__ import annotations
@@ -43,6 +43,8 @@ class RecordingOptions:
     unknown_start: the first session, too, starts with such an unrecorded excursion.
     excursion_end: where an excursion leaves the machine: "home", or "random" (at the excursion's random pose,
     so the recording says neither where the machine was before a session's first row nor how it got there).
+    measure_session_starts: indices of measure rows (> 0) that start a further session, each like the verify
+    session (after session_gap_s, powered on again, an unrecorded excursion): measure rows from several sessions.
     """
 
     session_gap_s: float | None = None
@@ -51,10 +53,16 @@ class RecordingOptions:
     include_cmd: bool = True
     include_temp: bool = True
     include_sphere_fit_rms: bool = True
+    measure_session_starts: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if self.session_gap_s is not None and not (np.isfinite(self.session_gap_s) and self.session_gap_s >= 0):
             raise ValueError(f"session_gap_s must be finite and >= 0, got {self.session_gap_s}")
+        starts = self.measure_session_starts
+        if starts and (self.session_gap_s is None or list(starts) != sorted(set(starts)) or starts[0] <= 0):
+            raise ValueError(
+                f"measure_session_starts must be increasing row indices > 0 with a session_gap_s, got {starts}"
+            )
         if self.excursion_end not in ("home", "random"):
             raise ValueError(f"excursion_end must be 'home' or 'random', got {self.excursion_end!r}")
 
@@ -69,7 +77,8 @@ def second_session_start_s(n_measure: int, *, seconds_per_pose: float, options: 
     if options.session_gap_s is None:
         raise ValueError("the recording has one session: set RecordingOptions.session_gap_s")
     first = options.excursion_moves * seconds_per_pose if options.unknown_start else 0.0
-    return first + n_measure * seconds_per_pose + options.session_gap_s
+    earlier = len(options.measure_session_starts) * (options.session_gap_s + options.excursion_moves * seconds_per_pose)
+    return first + n_measure * seconds_per_pose + options.session_gap_s + earlier
 
 
 def simulate_recording(
@@ -127,10 +136,17 @@ def simulate_with_truth(
     *,
     seconds_per_pose: float = 45.0,
     options: RecordingOptions | None = None,
+    sphere_centres: list[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> tuple[Recording, np.ndarray]:
-    """The recording and, for studies only, the rig's true pose at every row (never written to the file)."""
+    """The recording and, for studies only, the rig's true pose at every row (never written to the file).
+
+    sphere_centres: when given, the CMM's raw (platform, base) sphere centres of every row are appended to it,
+    in the CMM's frame (what a CMM or laser tracker exports).
+    """
     options = options or RecordingOptions()
     _check_temperature(config, options)
+    if any(k >= len(measure_poses) for k in options.measure_session_starts):
+        raise ValueError(f"measure_session_starts {options.measure_session_starts} must be below {len(measure_poses)}")
     rig = SimulatedRig(robot, config)
     excursions = np.random.default_rng([config.seed, 0xE4C])
     commanded = np.concatenate([measure_poses, verify_poses])
@@ -144,7 +160,8 @@ def simulate_with_truth(
     if options.unknown_start:
         _excursion(rig, robot, excursions, seconds_per_pose, options.excursion_end)
     for k, pose in enumerate(commanded):
-        if k == len(measure_poses) and options.session_gap_s is not None:
+        new_session = k == len(measure_poses) or k in options.measure_session_starts
+        if new_session and options.session_gap_s is not None:
             rig.advance_time(options.session_gap_s)
             rig.start_session()
             _excursion(rig, robot, excursions, seconds_per_pose, options.excursion_end)
@@ -153,6 +170,8 @@ def simulate_with_truth(
         legs[k] = rig.reported_lengths()
         truth[k] = rig.true_pose()
         platform, base = rig.measure_spheres()
+        if sphere_centres is not None:
+            sphere_centres.append((platform, base))
         fit = pose_from_spheres(platform, base, robot)
         measured[k] = fit.pose
         fit_rms[k] = np.max(fit.rms_residual_mm)

@@ -2,7 +2,8 @@
 
 Routes: `/` the page (static files shipped in the package, nothing fetched from elsewhere), `/api/state`
 (snapshot), `/api/events` (server-sent events: the snapshot, then every change), `POST /api/questions/ID`,
-`/api/pause`, `/api/continue`, `/api/abort`, `/api/close`, `/api/history`, `/runs/RUN/FILE` (a run's
+`/api/pause`, `/api/continue`, `/api/abort`, `/api/close`, `/api/history`, `/api/drift?machine=M` (a machine's
+drift with trend plots), `/runs/RUN/FILE` (a run's
 report files) and `POST /api/runs/RUN/diagnose`. No route sends anything to a device: answers go to the
 engine, which applies the same checks as the command line (plausibility, the upload transaction).
 """
@@ -23,7 +24,7 @@ from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
 from procedures.panel.control import OperatorControl, PanelRequestError
-from procedures.panel.history import RUN_FILES, DiagnosisJobs, history, run_folder
+from procedures.panel.history import RUN_FILES, DiagnosisJobs, history, machine_drift, run_folder
 from procedures.panel.live import LiveState
 from procedures.panel.security import Guard
 
@@ -39,7 +40,8 @@ class PanelContext:
 
     live: LiveState
     control: OperatorControl | None = None
-    records_path: Path | None = None
+    records_path: str | Path | None = None
+    """The records database: a SQLite path or a URL."""
     live_runs: dict[str, Path] = field(default_factory=dict)
     closed: threading.Event = field(default_factory=threading.Event)
     diagnosis: DiagnosisJobs | None = None
@@ -135,7 +137,19 @@ def build_app(ctx: PanelContext, *, token: str | None = None, loopback_only: boo
 
     async def history_api(request: Request) -> Response:
         limit = max(1, min(int(request.query_params.get("limit", "50")), 500))
-        return JSONResponse(await run_in_threadpool(history, ctx.records_path, limit))
+        machine = request.query_params.get("machine") or None
+        return JSONResponse(await run_in_threadpool(history, ctx.records_path, limit, machine))
+
+    async def drift_api(request: Request) -> Response:
+        machine = request.query_params.get("machine")
+        if not machine:
+            return _error(ValueError("give ?machine=NAME"), 400)
+        try:
+            return JSONResponse(await run_in_threadpool(machine_drift, ctx.records_path, machine))
+        except LookupError as e:
+            return _error(e, 404)
+        except Exception as e:  # the records' own errors: unavailable, bad URL
+            return _error(e, 503)
 
     async def run_file(request: Request) -> Response:
         name = request.path_params["name"]
@@ -169,6 +183,7 @@ def build_app(ctx: PanelContext, *, token: str | None = None, loopback_only: boo
         Route("/api/questions/{qid:int}", answer, methods=["POST"]),
         *[Route(f"/api/{a}", command(a), methods=["POST"]) for a in ("pause", "continue", "abort", "close")],
         Route("/api/history", history_api),
+        Route("/api/drift", drift_api),
         Route("/api/runs/{run_id}/diagnose", diagnose, methods=["POST"]),
         Route("/runs/{run_id}/{name:path}", run_file),
         Mount("/static", StaticFiles(directory=STATIC), name="static"),

@@ -286,8 +286,15 @@ def upload_lines(detail: dict[str, Any]) -> list[str]:
     lines += [f"{d['name']:<14} {d['live_mm']:12.4f} {d['new_mm']:12.4f} {d['delta_mm']:+12.4f}"
               for d in detail.get("diff", [])]
     before, after = detail.get("measured_before") or {}, detail.get("predicted_after") or {}
-    if before and after:
-        lines.append(f"verification poses now: max {before['max_position_mm']:.4f} mm; predicted after the upload: "
-                     f"max {after['max_position_mm']:.4f} mm ({detail.get('predicted_basis', '')})")
+    if before:
+        lines.append(f"verification poses now (measured): max {before['max_position_mm']:.4f} mm, "
+                     f"RMS {before['rms_position_mm']:.4f} mm")
+    if after:
+        lines.append(f"predicted after the upload: max {after['max_position_mm']:.4f} mm, RMS "
+                     f"{after['rms_position_mm']:.4f} mm ({detail.get('predicted_basis', '')})")
+    spread = detail.get("model_uncertainty")
+    if spread:
+        lines.append(f"parameter uncertainty in the workspace: RMS {spread['rms_position_mm']:.4f} mm, worst pose "
+                     f"{spread['max_position_mm']:.4f} mm ({detail.get('model_uncertainty_basis', '')})")
     lines.append(f"parameter set sha256 {detail.get('new_sha256', '')[:16]}")
     return lines

@@ -1,4 +1,5 @@
-"""Past runs for the panel: the records database (runs, uploads), each run's report files, and a diagnosis on demand.
+"""Past runs for the panel: the records database (runs, uploads, each machine's drift with trend plots), each run's
+report files, and a diagnosis on demand.
 
 Read-only towards the records and the run folders, except that a diagnosis writes its own report into
 ``RUN/diagnosis/``. Files are served only by fixed names from folders the records (or the live run) name,
@@ -19,35 +20,74 @@ log = structlog.get_logger(__name__)
 
 RUN_FILES = {"report.html": "text/html", "report.json": "application/json", "recording.csv": "text/csv",
              "plan.json": "application/json", "diagnosis/index.html": "text/html",
-             "diagnosis/diagnosis.json": "application/json"}
+             "diagnosis/diagnosis.json": "application/json", "certificate.html": "text/html",
+             "certificate.pdf": "application/pdf"}
 
 
-def history(records_path: Path | None, limit: int = 50) -> dict[str, Any]:
-    """Runs and stand-alone uploads, newest first, with which report files each run folder holds."""
-    if records_path is None or not records_path.exists():
-        return {"records": None if records_path is None else str(records_path), "entries": [],
-                "note": "no records database yet"}
-    from procedures.records import Records
+def _open(records: str | Path | None) -> Any:
+    """The records, or None when there are none yet (a SQLite file not yet written); raises RecordsUnavailable."""
+    from procedures.records import Records, records_url
 
-    with Records(records_path) as records:
-        entries = records.history(limit)
+    if records is None:
+        return None
+    url = records_url(records)
+    if url.get_backend_name() == "sqlite" and not Path(str(url.database)).exists():
+        return None
+    return Records(url, retries=1, connect_timeout_s=3.0)  # a page waits for this: fail fast, say so
+
+
+def history(records_path: str | Path | None, limit: int = 50, machine: str | None = None) -> dict[str, Any]:
+    """Runs and stand-alone uploads, newest first (of one machine, or all), with the report files each run
+    folder holds, and the machines in the records."""
+    from procedures.records import RecordsError, RecordsUnavailable, redact
+
+    where = None if records_path is None else redact(str(records_path))
+    try:
+        db = _open(records_path)
+        if db is None:
+            return {"records": where, "entries": [], "machines": [], "note": "no records database yet"}
+        with db:
+            entries = db.history(limit, machine=machine)
+            machines = db.machines()
+            where = db.where
+    except (RecordsUnavailable, RecordsError) as e:
+        return {"records": where, "entries": [], "machines": [], "note": f"records unavailable: {e}"}
     for entry in entries:
         if entry.get("kind") == "run":
             folder = Path(entry["out_dir"]) if entry.get("out_dir") else None
             entry["files"] = [name for name in RUN_FILES if folder is not None and (folder / name).is_file()]
-    return {"records": str(records_path), "entries": entries}
+    return {"records": where, "machine": machine, "machines": machines, "entries": entries}
 
 
-def run_folder(records_path: Path | None, live_runs: dict[str, Path], run_id: str) -> Path | None:
+def machine_drift(records_path: str | Path | None, machine: str) -> dict[str, Any]:
+    """A machine's drift over its calibrations: flags in sentences, per-parameter numbers, trend plots (PNG)."""
+    from hilcal.drift import drift
+    from hilcal.reports.drift import trend_png
+
+    db = _open(records_path)
+    if db is None:
+        raise LookupError("no records database yet")
+    with db:
+        if machine not in {m["machine"] for m in db.machines()}:
+            raise LookupError(f"no machine {machine!r} in the records")
+        result = drift(db.calibrations(machine), machine).to_json()
+    return {**result, "plot_png": trend_png(result)}
+
+
+def run_folder(records_path: str | Path | None, live_runs: dict[str, Path], run_id: str) -> Path | None:
     """The folder of a run: the live run's, else the one its record names."""
     if run_id in live_runs:
         return live_runs[run_id]
-    if records_path is None or not records_path.exists():
-        return None
-    from procedures.records import Records
+    from procedures.records import RecordsError, RecordsUnavailable
 
-    with Records(records_path) as records:
-        row = records.run(run_id)
+    try:
+        db = _open(records_path)
+        if db is None:
+            return None
+        with db:
+            row = db.run(run_id)
+    except (RecordsUnavailable, RecordsError):
+        return None
     return None if row is None or not row.get("out_dir") else Path(row["out_dir"])
 
 

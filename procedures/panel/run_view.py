@@ -20,7 +20,8 @@ from procedures.calibration_procedure import PRE_PHASES
 
 LABEL = re.compile(r"^(?P<phase>[a-z_]+) (?P<pose>\d+) (?P<step>[a-z_]+)$")
 PHASE_TITLES = {"measure": "measurement poses", "verify": "verification poses, before calibration",
-                "verify_after": "verification poses, after calibration"}
+                "verify_after": "verification poses, after calibration",
+                "acceptance": "ISO 9283 acceptance test, after calibration"}
 PLAN_PHASE = {"measure": "measure", "verify": "verify", "verify_after": "verify"}
 ACTIVITY = {"PrepareCmm": "homing the CMM", "ReadParams": "reading the controller parameters",
             "ReadLegs": "reading the leg lengths", "Enable": "servo on", "Disable": "servo off",
@@ -65,9 +66,10 @@ class RunView:
         self._current: object | None = None
         self._progress: dict[str, Any] = {}
 
-    def show_plan(self, plan: Any, robot: Any) -> None:
+    def show_plan(self, plan: Any, robot: Any, acceptance_poses: int = 0) -> None:
+        """The plan; `acceptance_poses` measurements of an acceptance test count in the progress too."""
         self._poses = {"measure": plan.poses("measure"), "verify": plan.poses("verify")}
-        self.total = len(plan.measure_poses) + 2 * len(plan.verify_poses)
+        self.total = len(plan.measure_poses) + 2 * len(plan.verify_poses) + acceptance_poses
         self.live.set("plan", {"robot": robot.name, "sha256": plan.sha256(), "measure": self._poses["measure"],
                                "verify": self._poses["verify"], "workspace": robot.workspace, "home": robot.home,
                                "settle_s": plan.settle_s, "approach_mm": plan.approach_mm, "seed": plan.seed})

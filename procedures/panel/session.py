@@ -27,7 +27,7 @@ class PanelSession:
     """The panel of one run; `start()` returns the URL to print."""
 
     def __init__(self, *, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, operator: str | None = None,
-                 yes: bool = False, records_path: Path | None = None, say: Callable[[str], None] = print,
+                 yes: bool = False, records_path: str | Path | None = None, say: Callable[[str], None] = print,
                  terminal_fd: int | None = 0, history_only: bool = False) -> None:
         self.live = LiveState()
         self.view = RunView(self.live)
@@ -63,11 +63,11 @@ class PanelSession:
         return self.control.confirm(text)
 
     def run_opened(self, *, run_id: str, plan: Any, robot: Any, out_dir: Path, journal: Any, devices: Any,
-                   resumed: bool) -> None:
+                   resumed: bool, acceptance_poses: int = 0) -> None:
         assert self.control is not None
         self.ctx.live_runs[run_id] = out_dir
         self.control.journal_event = journal.event
-        self.view.show_plan(plan, robot)
+        self.view.show_plan(plan, robot, acceptance_poses)
         self.live.update("run", run_id=run_id, robot=robot.name, out_dir=str(out_dir), resumed=resumed,
                          operator=self.control.operator, status="waiting to start")
         self._monitor = StationMonitor(self.live, devices).start()
@@ -88,6 +88,7 @@ class PanelSession:
         files = [] if out_dir is None else [n for n in RUN_FILES if (out_dir / n).is_file()]
         self.live.set("result", {"code": code, "message": message, "status": status, "files": files,
                                  "verification": None if report is None else report.get("verification"),
+                                 "certificate": None if report is None else report.get("certificate"),
                                  "finished_at": time.time()})
         self.live.update("run", status=status)
         self.live.note(message, "info" if code == 0 else "warn")
@@ -113,12 +114,14 @@ class PanelSession:
         self.server.stop()
 
 
-def serve_history(records_path: Path, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
+def serve_history(records_path: str | Path, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
                   say: Callable[[str], None] = print, stop: threading.Event | None = None) -> None:
     """`hilcal panel`: past runs, their reports and uploads, until Ctrl-C (or `stop` is set)."""
     session = PanelSession(host=host, port=port, records_path=records_path, history_only=True)
     url = session.start()
-    say(f"hilcal panel (history of {records_path}) at {url}  - Ctrl-C to stop")
+    from procedures.records import redact
+
+    say(f"hilcal panel (history of {redact(str(records_path))}) at {url}  - Ctrl-C to stop")
     try:
         (stop or threading.Event()).wait()
     except KeyboardInterrupt:

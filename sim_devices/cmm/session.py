@@ -65,13 +65,20 @@ class CmmMachine:
         self.position_mm = np.zeros(3)
         self.latched: ErrorCode | None = None
         self._rng = np.random.default_rng([config.seed, 0xC33])
+        self._centres: tuple[bytes, np.ndarray] | None = None
 
     def sphere_centres_mm(self) -> np.ndarray:
-        """(6, 3) true sphere centres in the CMM frame: platform spheres first, then base spheres."""
+        """(6, 3) true sphere centres in the CMM frame: platform spheres first, then base spheres.
+
+        Computed again only when the platform's pose changed (every touch asks; the platform rarely moves).
+        """
         pose = self.rig.true_pose()
-        rot = Rotation.from_euler("ZYX", pose[[5, 4, 3]], degrees=True)
-        platform_base = rot.apply(self.robot.platform_spheres) + pose[:3]
-        return self.rig.to_cmm(np.vstack([platform_base, self.robot.base_spheres]))
+        key = pose.tobytes()
+        if self._centres is None or self._centres[0] != key:
+            rot = Rotation.from_euler("ZYX", pose[[5, 4, 3]], degrees=True)
+            platform_base = rot.apply(self.robot.platform_spheres) + pose[:3]
+            self._centres = (key, self.rig.to_cmm(np.vstack([platform_base, self.robot.base_spheres])))
+        return self._centres[1].copy()
 
     def _travel_s(self, to_mm: np.ndarray) -> float:
         return float(np.linalg.norm(to_mm - self.position_mm)) / self.config.travel_speed_mm_s
@@ -164,7 +171,7 @@ class CmmSession:
         if plan.silence:
             log.info("cmm_sim.fault_silence", tag=cmd.tag, command=cmd.call.name)
             return
-        self._send_line(f"{cmd.tag} {Marker.ACK}")
+        ack = f"{cmd.tag} {Marker.ACK}".encode(ENCODING) + TERMINATOR
         data: list[str] = []
         try:
             with self.machine.lock:
@@ -173,30 +180,35 @@ class CmmSession:
             with self.machine.lock:
                 if abort.code in LATCHING_ERRORS:
                     self.machine.latched = abort.code
-            if self.wait(self.machine.config.probe_time_s * self.machine.config.time_scale):
+            final, duration = _error_body(abort.code, cmd.call.name, abort.detail), self.machine.config.probe_time_s
+        else:
+            final = str(Marker.DONE)
+        delay_s = duration * self.machine.config.time_scale
+        if delay_s > 0:
+            self.send(ack)
+            ack = b""
+            if self.wait(delay_s):
                 return
-            self._emit(cmd.tag, [], _error_body(abort.code, cmd.call.name, abort.detail), plan)
-            return
-        if self.wait(duration * self.machine.config.time_scale):
-            return
-        self._emit(cmd.tag, data, str(Marker.DONE), plan)
+        self._emit(cmd.tag, data, final, plan, ack)
 
-    def _send_line(self, text: str) -> None:
-        self.send(text.encode(ENCODING) + TERMINATOR)
+    def _emit(self, tag: str, data: list[str], final: str, plan: FaultPlan, lead: bytes = b"") -> None:
+        """Data lines then the final line, with the planned garbage and cut applied, in one write after `lead`.
 
-    def _emit(self, tag: str, data: list[str], final: str, plan: FaultPlan) -> None:
-        """Data lines then the final line, with the planned garbage and cut applied."""
+        With no machine time to wait (time_scale 0 or an instant command) `lead` is the acknowledgement: a CMM
+        that finishes at once sends all its lines together.
+        """
         lines = [f"{tag} {Marker.DATA} {d}" for d in data] + [f"{tag} {final}"]
         if plan.partial:
             cut = lines[0].encode(ENCODING)
             log.info("cmm_sim.fault_partial", tag=tag, sent=cut[: len(cut) // 2])
-            self.send(cut[: len(cut) // 2])
+            self.send(lead + cut[: len(cut) // 2])
             return
+        out = [lead]
         for i, line in enumerate(lines):
             if plan.garbage and i == len(lines) - 1:
-                for _ in range(self.machine.config.garbage_lines):
-                    self.send(self.faults.garbage_line())
-            self._send_line(line)
+                out += [self.faults.garbage_line() for _ in range(self.machine.config.garbage_lines)]
+            out.append(line.encode(ENCODING) + TERMINATOR)
+        self.send(b"".join(out))
 
     def _check(self, call: Call) -> Callable[[FaultPlan], tuple[float, list[str]]]:
         """Validate a command in the current state; the action to run after the acknowledgement."""

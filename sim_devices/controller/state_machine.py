@@ -4,8 +4,10 @@ The model drives a ``SimulatedRig``. A leg setpoint L is a *controller length* (
 leg offset l0_ctrl from its live parameter set); the actuator moves to stroke s = L - l0_ctrl. The rig knows
 lengths as "reported" = stroke + nominal l0 (robot file), so the servo calls ``rig.move_to_lengths(s + l0_nom)``
 and reports s + l0_ctrl. Uploading compensated offsets therefore changes what the controller commands and
-reports while the physics stays in ``rig.py``. Time is real time multiplied by ``time_scale`` and the model
-advances lazily on every access, so it needs no thread of its own. All public methods are thread-safe.
+reports while the physics stays in ``rig.py``. With ``repeatability_mm`` each setpoint draws a settle error per leg
+(seeded): the actuator stops that far from where its transducer reads, so the platform scatters from visit to visit
+as a real machine's repeatability does, unseen by the controller. Time is real time multiplied by ``time_scale``
+and the model advances lazily on every access, so it needs no thread of its own. All public methods are thread-safe.
 
 This module knows no transport: ``can_peer.py`` + ``slcan_server.py`` / ``can_bus_server.py`` adapt it to CAN,
 ``modbus_protocol.py`` + ``modbus_server.py`` to Modbus, and ``controller_servers.py`` composes them.
@@ -114,6 +116,9 @@ class ControllerSimConfig(_Strict):
     modbus_rtu: bool = Field(default=False, description="also serve Modbus RTU on a pty")
     can_faults: CanFaultConfig = CanFaultConfig()
     modbus_faults: ModbusFaultConfig = ModbusFaultConfig()
+    repeatability_mm: float = Field(default=0.0, ge=0, le=1.0, description="std of each leg's settle error per "
+                                    "setpoint that its transducer does not see (the machine's repeatability), mm")
+    repeatability_seed: int = Field(default=0, description="seed of the settle errors")
 
 
 @dataclass(frozen=True)
@@ -170,6 +175,8 @@ class SimulatedController:
         nominal = np.concatenate([robot.a.ravel(), robot.b.ravel(), robot.l0]).astype(np.float32)
         self._banks = _ParameterBanks(live=nominal.copy(), saved=nominal.copy())
         self._banks.staging = words_from_floats(nominal.tolist())
+        self._settle_rng = np.random.default_rng([self.config.repeatability_seed, 0x5E771E])
+        self._settle_error_mm = np.zeros(N_LEGS)
         self._stroke_mm = rig.reported_lengths() - self._l0_nominal
         self._target_mm = self._stroke_mm.copy()
         self._settled_s = 0.0
@@ -198,7 +205,8 @@ class SimulatedController:
         return self._banks.live[L0_INDEX:].astype(float)
 
     def _measured_stroke(self) -> np.ndarray:
-        return self._rig.reported_lengths() - self._l0_nominal
+        """The transducers' reading: the actuators' position less the settle error they do not see."""
+        return self._rig.reported_lengths() - self._l0_nominal - self._settle_error_mm
 
     def _update(self) -> None:
         now = self._clock()
@@ -209,9 +217,12 @@ class SimulatedController:
         error = self._target_mm - self._stroke_mm
         step = self.config.leg_speed_mm_s * dt_s
         arrive_s = float(np.max(np.abs(error))) / self.config.leg_speed_mm_s
-        stroke = self._stroke_mm + np.clip(error, -step, step)
-        self._stroke_mm = np.clip(stroke, self._stroke_min_mm, self._stroke_max_mm)
-        self._rig.move_to_lengths(self._stroke_mm + self._l0_nominal)
+        stroke = np.clip(self._stroke_mm + np.clip(error, -step, step), self._stroke_min_mm, self._stroke_max_mm)
+        if not np.array_equal(stroke, self._stroke_mm):
+            # Legs that did not move leave the rig alone: it keeps its solved pose instead of solving it again.
+            self._stroke_mm = stroke
+            self._rig.move_to_lengths(np.clip(self._stroke_mm + self._settle_error_mm + self._l0_nominal,
+                                          *self.robot.leg_limits))
         if all(self._in_position()):
             self._settled_s += max(0.0, dt_s - arrive_s)
             if self._state is ControllerState.MOVING and self._settled_s >= self.config.settle_s:
@@ -302,6 +313,10 @@ class SimulatedController:
                 log.info("setpoint_refused", lengths_mm=target.tolist())
                 return RefusalReason.SETPOINT_OUT_OF_LIMITS
             self._stroke_mm = self._measured_stroke()
+            if self.config.repeatability_mm > 0:
+                self._settle_error_mm = self._settle_rng.normal(0.0, self.config.repeatability_mm, N_LEGS)
+                self._rig.move_to_lengths(np.clip(self._stroke_mm + self._settle_error_mm + self._l0_nominal,
+                                                  *self.robot.leg_limits))
             self._target_mm = stroke
             self._settled_s = 0.0
             self._setpoint_tag = tag

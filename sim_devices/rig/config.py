@@ -21,6 +21,7 @@ from sim_devices.config_base import Effect as _Effect
 from sim_devices.config_base import PerLeg, per_leg
 from sim_devices.config_base import Strict as _Strict
 from sim_devices.config_base import check_non_negative as _check_non_negative
+from sim_devices.rig.electric_config import ELECTRIC_EFFECT_NAMES, DriveComplianceConfig, MotorEncoderConfig
 from sim_devices.rig.unlisted_config import (
     PARTLY_LISTED_EFFECT_NAMES,
     SESSION_EFFECT_NAMES,
@@ -173,14 +174,17 @@ class OilColumnComplianceConfig(_Effect):
 EFFECT_NAMES = ("leg_compliance", "sensor_scale", "thermal_expansion", "joint_backlash", "oil_column_compliance")
 """The effects that the calibration tool's diagnosis has candidates for (its library)."""
 
-ALL_EFFECT_NAMES = (*EFFECT_NAMES, *UNLISTED_EFFECT_NAMES, *PARTLY_LISTED_EFFECT_NAMES, *SESSION_EFFECT_NAMES)
+ALL_EFFECT_NAMES = (
+    *EFFECT_NAMES, *UNLISTED_EFFECT_NAMES, *PARTLY_LISTED_EFFECT_NAMES, *SESSION_EFFECT_NAMES, *ELECTRIC_EFFECT_NAMES
+)
 
 
 class EffectsConfig(_Strict):
     """The non-geometric truth physics of the rig; every effect is off by default.
 
     The first five are the diagnosis library's effects; the out-of-library and session effects are configured
-    in sim_devices.rig.unlisted_config. Any combination may be enabled: the rig adds their Δl.
+    in sim_devices.rig.unlisted_config, the electric legs' (motor encoder, drive compliance) in
+    sim_devices.rig.electric_config. Any combination may be enabled: the rig adds their Δl.
     """
 
     leg_compliance: LegComplianceConfig = Field(default_factory=LegComplianceConfig)
@@ -194,9 +198,11 @@ class EffectsConfig(_Strict):
     local_heating: LocalHeatingConfig = Field(default_factory=LocalHeatingConfig)
     friction_hysteresis: FrictionHysteresisConfig = Field(default_factory=FrictionHysteresisConfig)
     zero_shift: ZeroShiftConfig = Field(default_factory=ZeroShiftConfig)
+    motor_encoder: MotorEncoderConfig = Field(default_factory=MotorEncoderConfig)
+    drive_compliance: DriveComplianceConfig = Field(default_factory=DriveComplianceConfig)
 
     def active(self) -> tuple[str, ...]:
-        """Names of the enabled effects, in ALL_EFFECT_NAMES order (library, out-of-library, session)."""
+        """Names of the enabled effects, in ALL_EFFECT_NAMES order (library, out-of-library, session, electric)."""
         return tuple(name for name in ALL_EFFECT_NAMES if getattr(self, name).enabled)
 
 

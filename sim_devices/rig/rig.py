@@ -8,7 +8,8 @@ Truth model, per leg i: true platform joint a_i + da_i, true base joint b_i + db
 reported length + dl0_i + the corrections of the enabled non-geometric effects (sim_devices.rig.physics), which may
 depend on the pose (through the leg loads and directions), the leg temperature, the motion history and the time
 since the session started (sim_devices.rig.physics for the library effects, sim_devices.rig.unlisted_physics for the
-out-of-library and session effects). Reported lengths are multiples of the leg resolution. The rig keeps a simulated
+out-of-library and session effects, sim_devices.rig.electric_physics for electric legs, whose homing at every
+session start moves their zero). Reported lengths are multiples of the leg resolution. The rig keeps a simulated
 clock that drives a drifting temperature, read by a noisy temperature sensor.
 """
 
@@ -19,7 +20,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from hilcal.robot import Robot
-from sim_devices.rig import physics, unlisted_physics
+from sim_devices.rig import electric_physics, physics, unlisted_physics
 from sim_devices.rig.config import RigConfig
 from sim_devices.rig.unlisted_config import TIME_DEPENDENT_EFFECTS
 
@@ -63,6 +64,7 @@ class SimulatedRig:
         self._last_move_mm = np.full(6, np.inf)
         self._time_s = 0.0
         self._session_start_s = 0.0
+        self._session = 0
         self._stroke_range_mm = (robot.leg_limits[0] - robot.l0, robot.leg_limits[1] - robot.l0)
         home_legs = physics.platform_joints_mm(self._last_rotation.as_matrix(), self._last_translation, self.a_true)
         home_legs = home_legs - self.b_true
@@ -137,10 +139,17 @@ class SimulatedRig:
             self._pose_cache = None
 
     def start_session(self) -> None:
-        """Power-on now: the time-since-power-on of the local heating restarts (the legs cooled in between)."""
+        """Power-on now: the time-since-power-on of the local heating restarts (the legs cooled in between), and
+        motor-encoder legs home again (a new seeded trip point of each home switch)."""
         self._session_start_s = self._time_s
-        if "local_heating" in self._active_effects:
+        self._session += 1
+        if {"local_heating", "motor_encoder"}.intersection(self._active_effects):
             self._pose_cache = None
+
+    @property
+    def session(self) -> int:
+        """Number of the current session: 0 from the rig's creation, +1 at every start_session (homing)."""
+        return self._session
 
     @property
     def session_start_s(self) -> float:
@@ -221,8 +230,16 @@ class SimulatedRig:
             temperature_c=self.true_temperature_c(),
             direction=history[0],
         )
+        electric = electric_physics.electric_corrections_mm(
+            effects,
+            reported_mm=reported_mm,
+            l0_mm=self.robot.l0,
+            forces_kn=forces,
+            seed=self.config.seed,
+            session=self._session,
+        )
         state = unlisted_physics.LegState(
-            stroke_mm=physics.true_stroke_mm(reported_mm, self.robot.l0, effects),
+            stroke_mm=electric_physics.true_stroke_mm(reported_mm, self.robot.l0, effects, electric),
             stroke_min_mm=self._stroke_range_mm[0],
             stroke_max_mm=self._stroke_range_mm[1],
             base_joints_mm=self.b_true,
@@ -234,6 +251,7 @@ class SimulatedRig:
             last_move_mm=history[1],
         )
         out.update(unlisted_physics.unlisted_corrections_mm(effects, state, leg_lengths))
+        out.update(electric)
         return out
 
     def _solve_pose(

@@ -312,6 +312,21 @@ def test_corrupted_command_is_not_executed_and_times_out(make_can_rig: Callable[
     assert r.peer.stats.rx_lost == 1
 
 
+def test_a_late_acknowledgement_does_not_answer_a_later_setpoint(make_can_rig: Callable[..., CanRig]) -> None:
+    """An acknowledgement that comes after its setpoint timed out is never used: 16 setpoints later the 4-bit
+    counter is the same again, and that move still waits for its own acknowledgement and ends in position."""
+    r = make_can_rig("pty", time_scale=500.0)
+    r.driver.enable()
+    start = r.driver.feedback().lengths_mm
+    r.server.faults.delay_next(0.7, frame_id=ID_ACK)
+    with pytest.raises(CommandTimeout, match="SETPOINT"):
+        r.driver.move_legs(start + 0.5, timeout_s=3.0)
+    time.sleep(0.4)  # the late acknowledgement arrives
+    for k in range(1, 17):
+        target = start + 0.5 + 0.1 * k
+        np.testing.assert_allclose(r.driver.move_legs(target, timeout_s=3.0), target, atol=0.002)
+
+
 def test_repeated_command_frame_executes_once(make_can_rig: Callable[..., CanRig]) -> None:
     r = make_can_rig("pty", time_scale=500.0)
     r.server.faults.repeat_next(1, frame_id=ID_COMMAND, direction="rx")

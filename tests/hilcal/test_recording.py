@@ -383,3 +383,21 @@ def test_from_arrays_validates_like_the_reader() -> None:
         recording_from_arrays(np.arange(n) + 0.5, *args[1:])
     unknown = recording_from_arrays(*args[:3], None, *args[4:])
     assert not unknown.has_cmd
+
+
+def test_values_in_errors_are_quoted_as_written_not_as_numpy_reprs() -> None:
+    """A recording built from numpy arrays: the message quotes 'mesure' and 1e-300 as a user would write them."""
+    rng = np.random.default_rng(3)
+    n = 10
+    legs = rng.uniform(3900, 4700, (n, 6))
+    meas = np.tile([0.0, 0.0, 3091.2, 0.0, 0.0, 0.0], (n, 1))
+    phase = np.array(["measure"] * 9 + ["mesure"])
+    with pytest.raises(RecordingError) as info:
+        recording_from_arrays(np.arange(n), phase, np.arange(n, dtype=float), np.full((n, 6), np.nan), legs, meas)
+    assert "'mesure'" in str(info.value) and "np." not in str(info.value)
+    times = np.arange(n, dtype=float)
+    times[4] = -1.0
+    with pytest.raises(RecordingError) as info:
+        recording_from_arrays(np.arange(n), [*phase[:-1].tolist(), "verify"], times, np.full((n, 6), np.nan), legs,
+                              meas)
+    assert "-1.0 s is negative" in str(info.value) and "np." not in str(info.value)

@@ -11,12 +11,14 @@ import threading
 import numpy as np
 import pytest
 
+from drivers.cmm_serial import SerialCmmConfig
 from drivers.controller_modbus import ParameterSet
 from hilcal.kinematics import Geometry, inverse_kinematics
 from hilcal.protocols.controller_states import FaultCode
 from procedures import messages as m
 from procedures.engine import Engine, RunInterrupted
 from procedures.journal import Journal
+from procedures.link_guard import LinksSection
 from procedures.station import open_devices, station_from_channels
 from sim_devices.sim_config import SimConfig, SimControllerConfig
 from sim_devices.simulator import start_sim
@@ -106,8 +108,12 @@ def test_a_fault_seen_when_the_link_returns_ends_the_run(sim, devices, tmp_path)
         assert "link_unsafe" in _kinds(journal) and "link_retake" not in _kinds(journal)
 
 
-def test_a_cmm_silent_beyond_the_drivers_resends_is_retried(sim, devices, tmp_path):
-    with Journal(tmp_path / "j.sqlite") as journal:
+def test_a_cmm_silent_beyond_the_drivers_resends_is_retried(sim, tmp_path):
+    station = station_from_channels(sim.channels())
+    quick = station.model_copy(update={  # 0.3 s per unanswered command instead of 1 s: the same rule, sooner
+        "cmm": station.cmm.model_copy(update={"serial": SerialCmmConfig(ack_timeout_s=0.3)}),
+        "links": LinksSection(cmm_wait_s=0.1)})
+    with open_devices(quick) as devices, Journal(tmp_path / "j.sqlite") as journal:
         engine = Engine(devices, journal)
         engine.run(iter_once(m.PrepareCmm()))
         sim.cmm_server.faults.inject("silence", count=4)  # 1 + max_retries (2) attempts fail, then one more

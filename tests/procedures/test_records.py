@@ -82,7 +82,7 @@ def sim(robot: Robot) -> Iterator[Sim]:
 def test_schema_wal_and_foreign_keys(tmp_path: Path) -> None:
     path = tmp_path / "r.sqlite"
     with Records(path) as records:
-        with pytest.raises(sqlite3.IntegrityError):
+        with pytest.raises(RecordsError, match="no-such-run"):
             records.record_upload({"outcome": "committed", "endpoint": "tcp://x:1"}, "ann", run_id="no-such-run")
     raw = sqlite3.connect(path)
     try:
@@ -90,13 +90,20 @@ def test_schema_wal_and_foreign_keys(tmp_path: Path) -> None:
         columns = {t: [r[1] for r in raw.execute(f"PRAGMA table_info({t})")] for t in ("runs", "parameter_sets",
                                                                                         "uploads")}
         assert columns["runs"] == ["run_id", "started_at", "finished_at", "status", "robot_name", "plan_sha256",
-                                   "operator", "out_dir", "estimator", "verify_before_json", "verify_after_json"]
+                                   "operator", "out_dir", "estimator", "verify_before_json", "verify_after_json",
+                                   "machine", "station", "machine_serial", "verdict", "certificate_number",
+                                   "certificate_path"]
         assert columns["parameter_sets"] == ["id", "sha256", "created_at", "source", "json"]
         assert columns["uploads"] == ["id", "run_id", "time", "operator", "endpoint", "params_sha256", "outcome",
-                                      "record_json"]
+                                      "record_json", "upload_id", "machine", "station"]
         with pytest.raises(sqlite3.IntegrityError):
             raw.execute("INSERT INTO parameter_sets (sha256, created_at, source, json) "
                         "VALUES ('x', 't', 'guess', '{}')")
+        raw.rollback()
+        raw.execute("PRAGMA foreign_keys=ON")
+        with pytest.raises(sqlite3.IntegrityError):
+            raw.execute("INSERT INTO uploads (run_id, time, outcome, record_json, upload_id) "
+                        "VALUES ('no-such-run', 't', 'committed', '{}', 'u1')")
     finally:
         raw.close()
     with Records(path) as again:  # reopening an existing file keeps it usable
@@ -121,8 +128,10 @@ def test_run_round_trip_and_update(db: Records) -> None:
         db.update_run("r1", colour="red")
     with pytest.raises(RecordsError, match="no run"):
         db.update_run("r2", status="complete")
-    with pytest.raises(sqlite3.IntegrityError):
+    with pytest.raises(RecordsError, match="already recorded"):
         db.record_run("r1", started_at="2025-03-02T08:00:00+00:00", status="running")
+    db.record_run("r1", started_at="2025-03-01T08:00:00+00:00", status="running")  # a retried write: a no-op
+    assert db.run("r1")["status"] == "complete"
 
 
 def test_parameter_sets_are_keyed_by_the_controller_hash(db: Records, robot: Robot) -> None:

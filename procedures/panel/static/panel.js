@@ -7,7 +7,7 @@ const state = { seq: 0, sections: {} };
 window.panel = { state, latencies: [] };
 const $ = (id) => document.getElementById(id);
 const S = () => state.sections;
-const PHASE_COLOR = { measure: "var(--measure)", verify: "var(--verify)", verify_after: "var(--after)" };
+const PHASE_COLOR = { measure: "var(--measure)", verify: "var(--verify)", verify_after: "var(--after)", acceptance: "var(--after)" };
 const FINAL = ["complete", "interrupted", "refused", "not started", "failed"];
 
 function fmt(v, digits = 3) {
@@ -169,13 +169,20 @@ function brief(b) {
     `max ${fmt(b.max_orientation_deg, 5)}°, RMS ${fmt(b.rms_orientation_deg, 5)}°` : "-";
 }
 
+function spread(m) {
+  return m ? `RMS ${fmt(m.rms_position_mm, 4)} mm, worst pose ${fmt(m.max_position_mm, 4)} mm; ` +
+    `RMS ${fmt(m.rms_orientation_deg, 5)}°` : "-";
+}
+
 function uploadDetail(d) {
   const rows = (d.diff || []).map((r) => `<tr><td>${esc(r.name)}</td><td>${fmt(r.live_mm, 4)}</td>` +
     `<td>${fmt(r.new_mm, 4)}</td><td>${(r.delta_mm >= 0 ? "+" : "") + fmt(r.delta_mm, 4)}</td></tr>`).join("");
   return `<table class="kv" id="upload-prediction">
       <tr><th>Verification poses now (measured)</th><td>${brief(d.measured_before)}</td></tr>
-      <tr><th>Predicted after the upload</th><td class="ok">${brief(d.predicted_after)}</td></tr>
+      <tr><th>Predicted after the upload</th><td id="predicted-after">${brief(d.predicted_after)}</td></tr>
       <tr><th>Basis</th><td>${esc(d.predicted_basis)}</td></tr>
+      <tr><th>Parameter uncertainty in the workspace</th><td id="model-uncertainty">${spread(d.model_uncertainty)}
+        <span class="sub">${esc(d.model_uncertainty_basis || "no covariance for this estimator")}</span></td></tr>
       ${d.uncompensated ? `<tr><th>Left uncompensated</th><td>${brief(d.uncompensated)}</td></tr>` : ""}
       <tr><th>Estimator, mode</th><td>${esc(d.estimator)}, ${esc(d.mode)}</td></tr>
       <tr><th>New set SHA-256</th><td><code id="upload-sha">${esc(d.new_sha256)}</code></td></tr></table>
@@ -398,8 +405,10 @@ function renderResult() {
     return;
   }
   const links = (r.files || []).map((f) => `<a href="${q(`/runs/${run.run_id}/${f}`)}" target="_blank" id="link-${f.replace(/[^a-z]/g, "-")}">${esc(f)}</a>`).join(" · ");
-  const v = r.verification || {};
-  $("result").innerHTML = `<p id="result-message" class="${r.code === 0 ? "ok" : "bad"}">${esc(r.message)}</p>` +
+  const v = r.verification || {}, cert = r.certificate;
+  const signoff = cert ? `<p id="result-verdict" class="${cert.verdict === "fail" ? "bad" : cert.verdict === "pass" ? "ok" : ""}">` +
+    `acceptance verdict: <b>${esc(cert.verdict)}</b> · certificate ${esc(cert.number)}</p>` : "";
+  $("result").innerHTML = `<p id="result-message" class="${r.code === 0 ? "ok" : "bad"}">${esc(r.message)}</p>` + signoff +
     (v.before ? `<table class="kv"><tr><th>before</th><td>${brief(v.before)}</td></tr><tr><th>after</th><td id="result-after">${brief(v.after)}</td></tr></table>` : "") +
     `<p>${links}</p>` + ((r.files || []).includes("recording.csv") ? '<button id="diagnose">Run diagnosis on this recording</button>' : "");
   const button = $("diagnose");
@@ -426,11 +435,13 @@ function renderTimeline() {
 
 // ---------------------------------------------------------------- history
 
-async function loadHistory() {
-  const r = await fetch(q("/api/history"));
+async function loadHistory(machine = null) {
+  const r = await fetch(q("/api/history" + (machine ? `?machine=${encodeURIComponent(machine)}` : "")));
   const h = await r.json();
-  $("history-source").textContent = h.records ? `records ${h.records}` : "no records database";
-  const head = "<tr><th>time (UTC)</th><th>run / operation</th><th>status</th><th>robot</th><th>operator</th><th>est.</th>" +
+  $("history-source").textContent = (h.records ? `records ${h.records}` : "no records database") + (h.note ? ` (${h.note})` : "");
+  $("machines").innerHTML = '<option value="">all machines</option>' + (h.machines || []).map((m) =>
+    `<option value="${esc(m.machine)}"${m.machine === machine ? " selected" : ""}>${esc(m.machine)} (${m.runs} runs)</option>`).join("");
+  const head = "<tr><th>time (UTC)</th><th>run / operation</th><th>status</th><th>machine</th><th>operator</th><th>est.</th>" +
     "<th>max before mm</th><th>max after mm</th><th>uploads</th><th>files</th></tr>";
   const rows = h.entries.map((e) => {
     if (e.kind === "upload") {
@@ -439,12 +450,34 @@ async function loadHistory() {
     }
     const ups = (e.uploads || []).map((u) => `${esc(u.outcome)} ${esc((u.params_sha256 || "").slice(0, 8))}`).join(", ");
     const files = (e.files || []).map((f) => `<a href="${q(`/runs/${e.run_id}/${f}`)}" target="_blank">${esc(f)}</a>`).join(" ");
-    return `<tr class="run" data-run="${esc(e.run_id)}"><td>${esc(e.started_at)}</td><td>${esc(e.run_id)}</td><td>${esc(e.status)}</td>` +
-      `<td>${esc(e.robot_name)}</td><td>${esc(e.operator)}</td><td>${esc(e.estimator)}</td>` +
+    const verdict = e.verdict ? ` · <b class="verdict ${e.verdict === "fail" ? "bad" : e.verdict === "pass" ? "ok" : ""}">${esc(e.verdict)}</b>` : "";
+    return `<tr class="run" data-run="${esc(e.run_id)}"><td>${esc(e.started_at)}</td><td>${esc(e.run_id)}</td><td>${esc(e.status)}${verdict}</td>` +
+      `<td><a href="#" class="machine-link" data-machine="${esc(e.machine || "")}">${esc(e.machine || e.robot_name)}</a></td><td>${esc(e.operator)}</td><td>${esc(e.estimator)}</td>` +
       `<td>${fmt(e.verify_before && e.verify_before.max_position_mm, 4)}</td><td>${fmt(e.verify_after && e.verify_after.max_position_mm, 4)}</td>` +
       `<td>${ups}</td><td>${files}</td></tr>`;
   });
   $("history-table").innerHTML = head + (rows.join("") || '<tr><td colspan="10">no runs recorded</td></tr>');
+  document.querySelectorAll(".machine-link").forEach((a) => (a.onclick = (ev) => {
+    ev.preventDefault();
+    if (a.dataset.machine) showMachine(a.dataset.machine);
+  }));
+  if (machine) loadDrift(machine).catch((e) => ($("drift").textContent = e.message));
+}
+
+function showMachine(machine) {
+  loadHistory(machine).catch((e) => ($("history-source").textContent = e.message));
+}
+
+async function loadDrift(machine) {
+  $("drift").textContent = `drift of ${machine}…`;
+  const r = await fetch(q(`/api/drift?machine=${encodeURIComponent(machine)}`));
+  const d = await r.json();
+  if (!r.ok) throw new Error(d.error || r.statusText);
+  const since = (d.since_last || []).map((s) => `<li>${esc(s)}</li>`).join("") || "<li>no parameter moved beyond the rule</li>";
+  const flags = (d.flags || []).map((s) => `<li class="bad">${esc(s)}</li>`).join("") || "<li>nothing flagged</li>";
+  $("drift").innerHTML = `<p><b id="drift-machine">${esc(d.machine)}</b>: ${d.n_calibrations} calibrations. <span class="sub">${esc(d.rule)}</span></p>` +
+    `<p>since the previous calibration:</p><ul id="drift-since">${since}</ul><p>over the history:</p><ul id="drift-flags">${flags}</ul>` +
+    (d.plot_png ? `<img id="drift-plot" alt="parameter trends" src="data:image/png;base64,${d.plot_png}">` : "<p>fewer than two calibrations: no trend yet</p>");
 }
 
 function showView(name) {
@@ -465,6 +498,7 @@ $("pause").onclick = () => command("pause");
 $("continue").onclick = () => command("continue");
 $("abort").onclick = () => command("abort");
 $("close-panel").onclick = () => command("close");
+$("machines").onchange = (e) => showMachine(e.target.value || null);
 setInterval(() => {
   tick();
   renderStation();

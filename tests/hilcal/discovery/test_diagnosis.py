@@ -112,7 +112,7 @@ def test_a_physically_impossible_fit_is_not_named(robot, plan):
     diag = diagnose(rec, robot)
     assert "leg_compliance" not in diag.effects and "oil_column_compliance" not in diag.effects
     reasons = dict(diag.rejected)
-    assert "outside the physical range" in reasons["leg_compliance"]
+    assert "outside the physically possible range" in reasons["leg_compliance"]
     assert "Not named as leg compliance" in diag.explanation
     _within_ranges(diag)
     assert diag.effect == "unexplained"

@@ -30,7 +30,7 @@ from procedures.cli.simulated_recording import simulate_recording
 from sim_devices.rig.config import GeometryErrors, RigConfig, load_errors
 from sim_devices.rig.rig import SimulatedRig
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DOC_PATH = ROOT / "docs" / "paper_study.md"
 IMG_DIR = ROOT / "docs" / "img"
 

@@ -4,7 +4,7 @@ Table 7 on the simulated rig, then write docs/paper_study.md and its plots in do
 Why: the paper claims that L-infinity identification bounds the worst verification error better than least
 squares, that D-optimal pose sets beat random ones, and that accuracy tracks measurement noise. This script checks
 those claims on our independent truth rig (sim_devices) with our identification code (hilcal), seeded and
-deterministic, so the doc can be regenerated at any time: ``python benchmarks/paper_study.py [--quick]``.
+deterministic, so the doc can be regenerated at any time: ``python benchmarks/studies/paper_study.py [--quick]``.
 
 This script runs the study: ``paper_study_runs.py`` computes, ``paper_study_plots.py`` draws and
 ``paper_study_doc.py`` writes the doc.
@@ -34,7 +34,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
     plan = QUICK_PLAN if args.quick else FULL_PLAN
-    command = "python benchmarks/paper_study.py" + (" --quick" if args.quick else "")
+    command = "python benchmarks/studies/paper_study.py" + (" --quick" if args.quick else "")
     robot = default_robot()
     t0 = time.perf_counter()
     check = self_check(robot)

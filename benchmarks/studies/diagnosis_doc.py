@@ -169,13 +169,14 @@ def verdict_lines(summary: dict[str, Any]) -> list[str]:
     return [*lines, ""]
 
 
-def update_method_doc(path: Path, summary: dict[str, Any], command: str) -> None:
+def update_method_doc(path: Path, summary: dict[str, Any], command: str, extra: list[str] | None = None) -> None:
     """Replace the block between the study markers of docs/diagnosis.md with this run's verdicts."""
     text = path.read_text()
     begin, end = "<!-- study:begin -->", "<!-- study:end -->"
     head, rest = text.split(begin, 1)
     _, tail = rest.split(end, 1)
-    block = [f"From `{command}` on {datetime.now(UTC):%Y-%m-%d}:", "", *verdict_lines(summary)[1:]]
+    block = [f"From `{command}` on {datetime.now(UTC):%Y-%m-%d}:", "", *verdict_lines(summary)[1:],
+             *[line for line in extra or [] if line]]
     path.write_text(head + begin + "\n" + "\n".join(block) + "\n" + end + tail)
 
 

@@ -6,7 +6,7 @@ is known: how often both effects of a pair are named, how often physics the libr
 `unexplained` (never "within noise") and how much the generic model gains on held-out poses, how often a
 recording without any missing physics raises an alarm, with and without commanded poses and temperatures.
 
-Run ``python benchmarks/diagnosis_study.py [--quick] [--jobs N]``; it writes docs/diagnosis_study.md and
+Run ``python benchmarks/studies/diagnosis_study.py [--quick] [--jobs N]``; it writes docs/diagnosis_study.md and
 docs/img/diagnosis_*.png. Every run is seeded, so the output is deterministic (up to the date and run time).
 """
 
@@ -28,6 +28,7 @@ from typing import Any
 import structlog
 from diagnosis_cases import ALPHA, N_MEASURE, N_VERIFY, NULL_GEOMETRY_SIGMA_MM, Case, init_worker, run_case
 from diagnosis_doc import plot_singles, plot_unlisted, update_method_doc, write_doc
+from diagnosis_faults import fault_section, run_fault_case, study_cases, summarize_faults, verdict_line
 from diagnosis_summary import summarize
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -35,7 +36,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from sim_devices.rig.config import EFFECT_NAMES
 from sim_devices.rig.unlisted_concealed import UNLISTED_EFFECT_NAMES
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DOC_PATH = ROOT / "docs" / "diagnosis_study.md"
 NULL_SEED_OFFSET = 10_000
 NOISE_MODELS = ("gaussian", "distance", "student_t")
@@ -52,10 +53,12 @@ class StudyPlan:
     bare_seeds: int
     null_seeds: int
     n_boot: int
+    fault_grid_seeds: int = 5
+    fault_done_when_seeds: int = 20
 
 
-FULL_PLAN = StudyPlan(False, (0.5, 1.0, 2.0), 12, 10, (0.5, 1.0), 12, 8, 100, 999)
-QUICK_PLAN = StudyPlan(True, (1.0,), 2, 1, (1.0,), 2, 1, 4, 199)
+FULL_PLAN = StudyPlan(False, (0.5, 1.0, 2.0), 12, 10, (0.5, 1.0), 12, 8, 100, 999, 5, 20)
+QUICK_PLAN = StudyPlan(True, (1.0,), 2, 1, (1.0,), 2, 1, 4, 399, 1, 2)
 COMBOS = (("leg_compliance",), ("thermal_expansion",))
 """Library effects concealed together with each out-of-library effect (several effects at once)."""
 
@@ -78,16 +81,21 @@ def cases(plan: StudyPlan) -> list[Case]:
     return out
 
 
+def _run(case: Any, n_boot: int) -> dict[str, Any]:
+    return run_case(case, n_boot) if isinstance(case, Case) else run_fault_case(case, n_boot)
+
+
 def run_all(plan: StudyPlan, jobs: int, progress: Progress | None) -> list[dict[str, Any]]:
     """Every case, in plan order (independent of the worker count); longest first for load balance."""
-    todo = cases(plan)
+    todo: list[Any] = [*cases(plan), *study_cases(plan.fault_grid_seeds, plan.fault_done_when_seeds)]
     results: list[dict[str, Any] | None] = [None] * len(todo)
     task = progress.add_task("simulate + diagnose recordings", total=len(todo)) if progress else None
-    order = sorted(range(len(todo)), key=lambda i: (todo[i].kind == "null", -len(todo[i].effects), i))
+    order = sorted(range(len(todo)), key=lambda i: (getattr(todo[i], "kind", "") == "null",
+                                                    -len(getattr(todo[i], "effects", ("a", "b", "c"))), i))
     if jobs <= 1:
         init_worker()
         for i in order:
-            results[i] = run_case(todo[i], plan.n_boot)
+            results[i] = _run(todo[i], plan.n_boot)
             if progress is not None and task is not None:
                 progress.advance(task)
     else:
@@ -95,7 +103,7 @@ def run_all(plan: StudyPlan, jobs: int, progress: Progress | None) -> list[dict[
             os.environ[var] = "1"
         ctx = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=init_worker) as ex:
-            futures = {ex.submit(run_case, todo[i], plan.n_boot): i for i in order}
+            futures = {ex.submit(_run, todo[i], plan.n_boot): i for i in order}
             for fut in as_completed(futures):
                 results[futures[fut]] = fut.result()
                 if progress is not None and task is not None:
@@ -134,17 +142,21 @@ def run(quick: bool, jobs: int | None = None, command: str | None = None) -> dic
     columns = (TextColumn("{task.description:<36}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     with Progress(*columns, console=Console(stderr=True)) as bar:
         results = run_all(plan, jobs, bar)
-    summary = summarize(results)
+    summary = summarize([r for r in results if r["kind"] != "fault"])
+    faults = summarize_faults([r for r in results if r["kind"] == "fault"])
     elapsed = time.perf_counter() - t0
     images = {"naming rate vs magnitude": "docs/img/diagnosis_detection_rate.png",
               "out-of-library: before and after": "docs/img/diagnosis_unlisted.png"}
     (ROOT / "docs" / "img").mkdir(parents=True, exist_ok=True)
     plot_singles(summary, ROOT / images["naming rate vs magnitude"])
     plot_unlisted(summary, ROOT / images["out-of-library: before and after"])
-    command = command or "python benchmarks/diagnosis_study.py" + (" --quick" if quick else "")
-    DOC_PATH.write_text(write_doc(summary, setup_text(plan), command, elapsed, jobs, images))
-    update_method_doc(ROOT / "docs" / "diagnosis.md", summary, command)
+    command = command or "python benchmarks/studies/diagnosis_study.py" + (" --quick" if quick else "")
+    doc = write_doc(summary, setup_text(plan), command, elapsed, jobs, images)
+    head, plots_part = doc.split("## Plots\n", 1)
+    DOC_PATH.write_text(head + "\n".join(fault_section(faults)) + "\n## Plots\n" + plots_part)
+    update_method_doc(ROOT / "docs" / "diagnosis.md", summary, command, [verdict_line(faults)])
     summary["elapsed_s"] = elapsed
+    summary["faults"] = faults
     return summary
 
 
@@ -159,6 +171,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     t = summary["pairs"]["total"]
     print(f"  pairs both named {t['k']}/{t['n']}; nulls {summary['nulls']['pooled']['k']}/"
           f"{summary['nulls']['pooled']['n']}; range violations {summary['range_violations']}")
+    print("  " + verdict_line(summary["faults"]).lstrip("- "))
     return 0
 
 

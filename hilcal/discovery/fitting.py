@@ -1,0 +1,211 @@
+"""The diagnosis' model: the fixed inputs of one diagnosis, least-squares fits of geometry plus effect groups,
+and what a fitted model predicts (poses, leg residuals, held-out accuracy).
+
+Fits start from the previous model's parameters (warm start) and fall back to a fresh start when that does not
+converge; the final fit keeps every library parameter inside its physically possible range and holds the
+generic shapes to the size the data shows (a Gaussian prior on the correction, so a shape cannot cancel against
+the refitted geometry with metres of opposite corrections).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import structlog
+from scipy.optimize import least_squares
+
+from hilcal.discovery.context import EffectContext
+from hilcal.discovery.noise import find_repeats
+from hilcal.discovery.regression import pooled_whitener, whiten
+from hilcal.discovery.selection import ModelState
+from hilcal.discovery.term_groups import GENERIC, TermGroup
+from hilcal.error_models import GEOMETRIC_42, implicit_residuals
+from hilcal.identification import IdentificationResult, identify, residual_function
+from hilcal.kinematics import KinematicsError, forward_kinematics
+from hilcal.metrics import AccuracySummary
+from hilcal.recording import Recording
+from hilcal.robot import Robot
+
+log = structlog.get_logger(__name__)
+
+N_GEO = 42
+DL0_COLUMNS = [7 * i + 6 for i in range(6)]
+MAX_EVALUATIONS = 200
+
+
+@dataclasses.dataclass
+class Problem:
+    """The fixed inputs of one diagnosis: robot, rows, contexts and the cluster structure for held-out residuals."""
+
+    robot: Robot
+    rec: Recording
+    measure: np.ndarray
+    ctx_all: EffectContext
+    ctx: EffectContext
+    mea: Recording
+    ver: Recording
+    clusters: np.ndarray
+    phi_cache: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    not_converged: list[str] = dataclasses.field(default_factory=list)
+    """Fits that stopped before converging (named in the answer)."""
+
+    @classmethod
+    def of(cls, rec: Recording, robot: Robot) -> Problem:
+        measure = rec.phase == "measure"
+        ctx_all = EffectContext.from_recording(rec, robot)
+        mea = rec.select("measure")
+        labels = np.arange(mea.n)
+        for group in find_repeats(mea):
+            labels[group] = group[0]
+        return cls(robot, rec, measure, ctx_all, ctx_all.rows(measure), mea, rec.select("verify"), labels)
+
+    @property
+    def length_mm(self) -> float:
+        return self.robot.characteristic_length_mm
+
+    def phi(self, group: TermGroup) -> np.ndarray:
+        if group.key not in self.phi_cache:
+            self.phi_cache[group.key] = group.phi(self.ctx)
+        return self.phi_cache[group.key]
+
+    def phi_of(self, groups: list[TermGroup]) -> np.ndarray | None:
+        return np.concatenate([self.phi(g) for g in groups], axis=2) if groups else None
+
+
+def names_of(groups: list[TermGroup]) -> tuple[str, ...]:
+    return tuple(n for g in groups for n in g.names)
+
+
+def _start(groups: list[TermGroup], start: IdentificationResult | None) -> np.ndarray | None:
+    """The previous fit's values for the parameters both models share, zero for the new ones."""
+    if start is None:
+        return None
+    values = dict(zip(start.names, start.x, strict=True))
+    return np.array([values.get(n, 0.0) for n in GEOMETRIC_42.names + names_of(groups)])
+
+
+def fit_model(p: Problem, groups: list[TermGroup], start: IdentificationResult | None = None,
+              label: str = "") -> IdentificationResult:
+    """Least squares of geometry + groups on the measure rows, warm-started from `start` when given."""
+    phi = p.phi_of(groups)
+    kwargs = {"estimator": "ls", "extra_regressors": phi, "extra_names": names_of(groups),
+              "max_iter": MAX_EVALUATIONS}
+    fit = None
+    if start is not None:
+        try:
+            fit = identify(p.robot, p.mea.legs_mm, p.mea.meas, x0=_start(groups, start), **kwargs)
+        except KinematicsError:
+            fit = None
+    if fit is None or not fit.converged:
+        fit = identify(p.robot, p.mea.legs_mm, p.mea.meas, **kwargs)
+    if not fit.converged:
+        name = label or ("geometry" if not groups else "geometry + " + ", ".join(g.key for g in groups))
+        if name not in p.not_converged:
+            p.not_converged.append(name)
+        log.warning("fit_not_converged", model=name, evaluations=fit.n_iterations, message=fit.message)
+    return fit
+
+
+def _bounds(groups: list[TermGroup], size: int) -> tuple[np.ndarray, np.ndarray]:
+    lo = np.full(size, -np.inf)
+    hi = np.full(size, np.inf)
+    k = N_GEO
+    for g in groups:
+        if g.physical_range is not None:
+            lo[k:k + g.n_params], hi[k:k + g.n_params] = g.physical_range.low, g.physical_range.high
+        k += g.n_params
+    return lo, hi
+
+
+SHAPE_PRIOR_FACTOR = 3.0
+"""A generic shape's correction on a leg gets a Gaussian prior of 3 x the largest discrepancy the geometric fit
+leaves on that leg: a real shape is not shrunk, a shape that cancels against the geometry with corrections far
+beyond anything the data shows is."""
+
+
+def shape_scales(leg_residuals_mm: np.ndarray) -> np.ndarray:
+    """Per leg, the prior scale (mm) of a generic correction: SHAPE_PRIOR_FACTOR x the largest |residual|."""
+    return SHAPE_PRIOR_FACTOR * np.max(np.abs(leg_residuals_mm), axis=0)
+
+
+def final_fit(p: Problem, groups: list[TermGroup], start: IdentificationResult, shape_scale_mm: np.ndarray,
+              noise_mm: float) -> IdentificationResult:
+    """The model that is reported and exported: library parameters inside their possible ranges, generic shapes
+    with a Gaussian prior of `shape_scale_mm` (per leg) on their leg corrections at the recorded rows (ridge rows
+    weighted by noise / scale), so the geometry takes what it can absorb and a shape is no larger than the data
+    shows."""
+    fit = start
+    phi = p.phi_of(groups)
+    generic = np.zeros(fit.x.size, dtype=bool)
+    k = N_GEO
+    for g in groups:
+        generic[k:k + g.n_params] = g.kind == GENERIC
+        k += g.n_params
+    lo, hi = _bounds(groups, fit.x.size)
+    inside = bool(np.all((fit.x >= lo) & (fit.x <= hi)))
+    if inside and not generic.any():
+        return fit
+    fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, phi)
+    weight = noise_mm / np.maximum(np.asarray(shape_scale_mm, dtype=float), max(noise_mm, 1e-9))
+    P = np.zeros((0, fit.x.size))
+    if generic.any():
+        assert phi is not None
+        P = np.zeros((phi.shape[0] * 6, fit.x.size))
+        P[:, generic] = (weight[None, :, None] * phi[:, :, generic[N_GEO:]]).reshape(-1, int(generic.sum()))
+
+    def residuals(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r, J = fun(x)
+        return np.concatenate([r, P @ x]), np.concatenate([J, P])
+
+    span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
+    x0 = np.clip(fit.x, lo + 1e-9 * span, hi - 1e-9 * span)
+    sol = least_squares(lambda x: residuals(x)[0], x0, jac=lambda x: residuals(x)[1], bounds=(lo, hi),
+                        method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=MAX_EVALUATIONS)
+    if sol.status <= 0:
+        p.not_converged.append("final model (bounded, shapes held to the data)")
+    r = fun(sol.x)[0]
+    return dataclasses.replace(fit, x=sol.x, residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))),
+                               rms_residual=float(np.sqrt(np.mean(r**2))), converged=bool(sol.status > 0),
+                               message=f"final refit: {sol.message}")
+
+
+def predict(p: Problem, fit: IdentificationResult, groups: list[TermGroup], rows: np.ndarray,
+            leg_offsets_mm: np.ndarray | float = 0.0) -> np.ndarray:
+    """Poses the model predicts from the recorded leg lengths of some rows (mm, deg), optionally offset."""
+    ctx = p.ctx_all.rows(rows)
+    legs = p.rec.legs_mm[rows] + leg_offsets_mm
+    if groups:
+        legs = legs + np.concatenate([g.phi(ctx) for g in groups], axis=2) @ fit.x[N_GEO:]
+    return forward_kinematics(fit.geometry(p.robot), legs, p.rec.meas[rows])
+
+
+def verify_accuracy(p: Problem, fit: IdentificationResult, groups: list[TermGroup]) -> AccuracySummary | None:
+    rows = ~p.measure
+    if not rows.any():
+        return None
+    return AccuracySummary.of(p.rec.meas[rows], predict(p, fit, groups, rows))
+
+
+def leg_residuals(p: Problem, fit: IdentificationResult, groups: list[TermGroup]) -> np.ndarray:
+    """Per-leg length residuals (mm) of every row: length implied by the measured pose minus the modelled length."""
+    legs = p.rec.legs_mm
+    if groups:
+        legs = legs + np.concatenate([g.phi(p.ctx_all) for g in groups], axis=2) @ fit.x[N_GEO:]
+    return implicit_residuals(fit.geometry(p.robot), legs, p.rec.meas)
+
+
+def model_state(p: Problem, fit: IdentificationResult, groups: list[TermGroup]) -> tuple[ModelState, np.ndarray]:
+    """The model linearized and whitened at its fit, and d(residual)/d(dl0) per leg for new groups' columns."""
+    fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
+    r, J = fun(fit.x)
+    n = p.mea.n
+    W = pooled_whitener(r, J, n)
+    state = ModelState.build(whiten(r, W, n), whiten(J, W, n), W, n, p.clusters)
+    return state, J.reshape(n, 6, -1)[:, :, DL0_COLUMNS]
+
+
+def group_columns(p: Problem, state: ModelState, d_dl0: np.ndarray, group: TermGroup) -> np.ndarray:
+    """A candidate group's whitened Jacobian columns at the current model."""
+    cols = np.einsum("nal,nlq->naq", d_dl0, p.phi(group)).reshape(6 * p.mea.n, -1)
+    return whiten(cols, state.W, state.n_poses)

@@ -1,0 +1,278 @@
+"""The sign-off of a run: who calibrated which machine with which instrument, the figures with their uncertainty,
+the ISO 9283 table and the verdict (report.json's sign-off keys); then the certificate files and the records.
+
+``signoff_section`` turns what the run measured into those keys (the math is ``hilcal.acceptance``);
+``write_certificate`` renders certificate.html from report.json alone (``hilcal.reports.certificate``) and prints it
+to certificate.pdf (``procedures.pdf``), so ``hilcal certificate RUN_DIR`` regenerates both from the run folder.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import subprocess
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+
+from hilcal.acceptance.evaluation import evaluate_iso9283, limit_figures
+from hilcal.acceptance.iso9283 import CYCLE_ORDER, DEFAULT_CYCLES, POSE_NAMES
+from hilcal.acceptance.uncertainty import (
+    K_COVERAGE,
+    accuracy_figures,
+    cmm_pose_covariance,
+    model_uncertainty,
+    pooled_covariance,
+    repeated_groups,
+)
+from hilcal.acceptance.verdict import RULES, check_limits, overall
+from hilcal.robot import Robot
+from procedures.acceptance import AcceptanceTest
+from procedures.signoff import SignoffSettings
+
+log = structlog.get_logger(__name__)
+
+CERTIFICATE_FILES = ("certificate.html", "certificate.pdf")
+SIM_CMM = "simulated CMM (hilcal sim)"
+
+
+@dataclass(frozen=True)
+class SignoffContext:
+    """What the run knows for its sign-off besides the measurements."""
+
+    operator: str | None
+    settings: SignoffSettings
+    acceptance: AcceptanceTest | None = None
+    sim: bool = False
+    robot_path: str | None = None
+    cmm_url: str | None = None
+
+
+def certificate_number(run_id: str) -> str:
+    """Unique per run (the run id holds the start time and a random part) and the same when regenerated."""
+    return f"HILCAL-{run_id}"
+
+
+def software_info() -> dict[str, Any]:
+    """hilcal's version and the git revision of its source (None outside a git checkout), and local changes."""
+    try:
+        version = metadata.version("hilcal")
+    except metadata.PackageNotFoundError:
+        version = None
+    source = Path(__file__).resolve().parents[1]
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(source), *args], capture_output=True, text=True, timeout=5.0,
+                                  check=False)
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    revision = git("rev-parse", "HEAD")
+    changes = git("status", "--porcelain", "--untracked-files=no") if revision else None
+    return {"name": "hilcal", "version": version, "git_revision": revision,
+            "git_modified": None if changes is None else bool(changes)}
+
+
+def _cmm_uncertainty(ctx: SignoffContext, robot: Robot) -> tuple[float | None, str | None]:
+    """The CMM's stated expanded uncertainty U (k = 2) of a sphere-centre coordinate (mm) and where it comes from."""
+    if ctx.settings.cmm.stated_uncertainty_mm is not None:
+        return ctx.settings.cmm.stated_uncertainty_mm, "station file [cmm] stated_uncertainty_mm"
+    if robot.sphere_sigma_mm is not None:
+        return K_COVERAGE * robot.sphere_sigma_mm, "robot file [cmm] sphere_sigma_mm (standard), times 2"
+    return None, None
+
+
+def _instrument(ctx: SignoffContext, robot: Robot, finished_at: str) -> dict[str, Any]:
+    stated, source = _cmm_uncertainty(ctx, robot)
+    due = ctx.settings.cmm.calibration_due
+    overdue = None if due is None else due < dt.datetime.fromisoformat(finished_at).date()
+    warning = None
+    if overdue:
+        warning = f"the CMM's own calibration was due on {due.isoformat()}: overdue on the day of this calibration"
+    elif stated is None:
+        warning = "the CMM's uncertainty is not stated: the figures carry only the scatter of the run's repeated poses"
+    return {"cmm": ctx.settings.cmm.identity or (SIM_CMM if ctx.sim else None), "url": ctx.cmm_url,
+            "stated_uncertainty_mm": stated, "uncertainty_source": source,
+            "calibration_due": None if due is None else due.isoformat(), "overdue": overdue, "warning": warning}
+
+
+def _environment(rows: list[dict]) -> dict[str, Any]:
+    temps = [r["detail"]["temp_c"] for r in rows if isinstance(r.get("detail", {}).get("temp_c"), int | float)]
+    if not temps:
+        return {"temperature_c": None, "note": "not recorded (the station reports no temperature)"}
+    return {"temperature_c": {"mean": float(np.mean(temps)), "min": float(np.min(temps)), "max": float(np.max(temps)),
+                              "n": len(temps)}, "note": "the station's temperature readings during the measurements"}
+
+
+def _arrays(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    return (np.array([r["meas"] for r in rows], dtype=float).reshape(-1, 6),
+            np.array([r["cmd"] for r in rows], dtype=float).reshape(-1, 6))
+
+
+def _iso_section(test: AcceptanceTest | None, rows: list[dict], cmm_cov: np.ndarray | None) -> tuple[dict | None, list]:
+    if test is None:
+        return None, []
+    _, which_route = test.route()
+    which = np.array([which_route[r["index"]] for r in rows], dtype=int)
+    meas, _ = _arrays(rows)
+    results = evaluate_iso9283(np.array(test.poses), meas, which, cmm_cov, seed=3)
+    notes = []
+    if test.cycles < DEFAULT_CYCLES:
+        notes.append(f"{test.cycles} cycles: fewer than the {DEFAULT_CYCLES} of ISO 9283")
+    return {"standard": "ISO 9283:1998", "sha256": test.sha256(), "cycles": test.cycles,
+            "order": [POSE_NAMES[k] for k in CYCLE_ORDER],
+            "cube": {"centre_mm": test.cube_centre_mm, "side_mm": test.cube_side_mm,
+                     "orientation_deg": test.orientation_deg},
+            "poses": [r.as_json() for r in results], "notes": notes}, results
+
+
+def _model_spread(robot: Robot, plan: Any, result: Any) -> dict[str, Any] | None:
+    """The chosen parameters' covariance carried to the approval's 64 workspace poses (None without one)."""
+    from hilcal.planning.design import verification_poses
+
+    ident = result.outcomes[result.chosen].identification if result.outcomes else None
+    if ident is None or ident.covariance is None or ident.model != "42" or not np.all(np.isfinite(ident.covariance)):
+        return None
+    return model_uncertainty(robot, ident.covariance, verification_poses(robot, 64, plan.seed + 1)).as_json()
+
+
+def signoff_section(ctx: SignoffContext, robot: Robot, plan: Any, result: Any, pre_rows: list[dict],
+                    run_id: str, finished_at: str) -> dict[str, Any]:
+    """report.json's sign-off keys: operator, station, machine, software, instrument, environment, method,
+    uncertainty, iso9283 and certificate (number, verdict per limit, decision rule)."""
+    instrument = _instrument(ctx, robot, finished_at)
+    stated = instrument["stated_uncertainty_mm"]
+    cmm_cov = None if stated is None else cmm_pose_covariance(robot, stated / K_COVERAGE)
+    measure = [r for r in pre_rows if r["phase"] == "measure"]
+    verify = [r for r in pre_rows if r["phase"] == "verify"]
+    groups = []
+    for rows in (measure, result.acceptance_rows):  # never verify with verify_after: same command, other parameters
+        meas, cmd = _arrays(rows)
+        groups += repeated_groups(cmd, meas)
+    rep_cov, rep_dof = pooled_covariance(groups)
+    parts = [c for c in (cmm_cov, rep_cov) if c is not None]
+    cov = sum(parts) if parts else None
+    before = accuracy_figures(*_arrays(verify), cov, seed=1) if verify else None
+    after = accuracy_figures(*_arrays(result.after_rows), cov, seed=2) if result.after_rows else None
+    iso, iso_results = _iso_section(ctx.acceptance, result.acceptance_rows, cmm_cov)
+    rule = ctx.settings.acceptance.decision_rule
+    checks = check_limits(ctx.settings.acceptance.limits(), limit_figures(after, iso_results), rule)
+    warnings = [w for w in (instrument["warning"],) if w]
+    if ctx.settings.acceptance.needs_iso9283() and ctx.acceptance is None:
+        warnings.append("the station sets ISO 9283 limits but the run had no acceptance test (--acceptance iso9283)")
+    ident = result.outcomes[result.chosen].identification if result.outcomes else None
+    return {
+        "operator": ctx.operator,
+        "station": {"name": ctx.settings.name or ("simulated station" if ctx.sim else None),
+                    "file": ctx.settings.station_file, "simulated": ctx.sim},
+        "machine": {"robot_name": robot.name, "robot_file": ctx.robot_path or "<built-in paper_table1>",
+                    "serial": ctx.settings.machine_serial},
+        "software": software_info(),
+        "instrument": instrument,
+        "environment": _environment([*pre_rows, *result.after_rows, *result.acceptance_rows]),
+        "method": {"model": None if ident is None else ident.model, "estimator": result.chosen,
+                   "plan_sha256": plan.sha256(), "n_measure_rows": len(measure), "n_verify_poses": len(verify),
+                   "acceptance_sha256": None if ctx.acceptance is None else ctx.acceptance.sha256()},
+        "uncertainty": {
+            "k": K_COVERAGE, "method": "GUM Supplement 1 Monte Carlo, seeded (docs/certificate.md)",
+            "cmm_pose_sd": None if cmm_cov is None else np.sqrt(np.diag(cmm_cov)).tolist(),
+            "repeatability_pose_sd": None if rep_cov is None else np.sqrt(np.diag(rep_cov)).tolist(),
+            "repeatability_dof": rep_dof,
+            "before": None if before is None else {k: f.as_json() for k, f in before.items()},
+            "after": None if after is None else {k: f.as_json() for k, f in after.items()},
+            "model_workspace": _model_spread(robot, plan, result),
+        },
+        "iso9283": iso,
+        "certificate": {"number": certificate_number(run_id), "issued_at": finished_at,
+                        "verdict": overall(checks), "limits": [c.as_json() for c in checks],
+                        "decision_rule": {"key": rule, "text": RULES[rule]}, "warnings": warnings},
+    }
+
+
+def write_certificate(out_dir: Path, report: dict[str, Any]) -> tuple[Path, Path | None, str | None]:
+    """certificate.html from report.json's content, then certificate.pdf; returns (html, pdf or None, problem)."""
+    from hilcal.reports.certificate import certificate_html
+    from procedures.pdf import PdfError, print_to_pdf
+
+    html_path, pdf_path = out_dir / CERTIFICATE_FILES[0], out_dir / CERTIFICATE_FILES[1]
+    html_path.write_text(certificate_html(report), encoding="utf-8")
+    try:
+        return html_path, print_to_pdf(html_path, pdf_path), None
+    except PdfError as e:
+        pdf_path.unlink(missing_ok=True)
+        log.warning("certificate_pdf_failed", error=str(e))
+        return html_path, None, f"certificate.pdf not written: {e}"
+
+
+def regenerate_certificate(run_dir: Path) -> tuple[Path, Path | None, str | None]:
+    """`hilcal certificate RUN_DIR`: both files again from the run's report.json; ValueError if it has no sign-off."""
+    path = run_dir / "report.json"
+    try:
+        report = json.loads(path.read_text())
+    except OSError as e:
+        raise ValueError(f"{path}: cannot read: {e.strerror}") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not JSON: {e.msg} at line {e.lineno}") from None
+    if not isinstance(report, dict) or not isinstance(report.get("certificate"), dict):
+        raise ValueError(f"{path} has no certificate section (a run of an older hilcal, or not a complete run)")
+    return write_certificate(run_dir, report)
+
+
+def signoff_settings(options: dict[str, Any], station: Any | None) -> SignoffSettings:
+    """The run's sign-off settings: the opened station's (a real run), or the station file's alone (--sim)."""
+    from procedures.signoff import load_signoff, signoff_from_station
+
+    if station is not None:
+        return signoff_from_station(station, options.get("station_path"))
+    return load_signoff(options.get("station_path"))
+
+
+def verdict_line(report: dict[str, Any]) -> str:
+    """The verdict in one line, with the limits that decided it."""
+    cert = report.get("certificate") or {}
+    failed = [c for c in cert.get("limits", []) if c["decision"] != "pass"]
+    why = "; ".join(f"{c['key']} {c['decision']}" + ("" if c["value"] is None else
+                    f" ({c['where']}: {c['value']:.4g} ± {c['U']:.2g} {c['unit']} against {c['limit']:g})")
+                    for c in failed)
+    return f"acceptance verdict: {cert.get('verdict')}" + (f": {why}" if why else "")
+
+
+def finish_certificate(out_dir: Path, report_path: Path) -> tuple[bool, Path, list[str]]:
+    """Write the certificate of a complete run; (accepted, the file to file, lines for the operator).
+
+    Accepted: the verdict is pass, or no limits were set. The file is the PDF, or the HTML if no PDF was made.
+    """
+    from hilcal.acceptance.verdict import NO_LIMITS
+
+    report = json.loads(report_path.read_text())
+    html_path, pdf_path, problem = write_certificate(out_dir, report)
+    cert = report["certificate"]
+    lines = [verdict_line(report), f"certificate {cert['number']}: {pdf_path or html_path}"]
+    lines += [f"warning: {w}" for w in cert.get("warnings", [])]
+    if problem:
+        lines.append(f"warning: {problem}")
+    return cert["verdict"] in ("pass", NO_LIMITS), pdf_path or html_path, lines
+
+
+def record_signoff(recorder: Any, journal: Any, report_path: Path | None, certificate: Path | None) -> str | None:
+    """Store the verdict and the certificate with the run in the records; a note if the records refuse them."""
+    from procedures.records import RecordsError
+
+    if report_path is None or certificate is None:
+        return None
+    report = json.loads(report_path.read_text())
+    cert = report.get("certificate") or {}
+    fields = {"verdict": cert.get("verdict"), "certificate_number": cert.get("number"),
+              "certificate_path": str(certificate.resolve())}
+    try:
+        recorder.write(journal, run=fields)
+    except RecordsError as e:
+        log.warning("records_refused_signoff", error=str(e))
+        return f"the records did not take the verdict ({e}); it is in report.json and the certificate"
+    return None

@@ -1,0 +1,172 @@
+"""The operator's parameter helpers behind ``hilcal upload`` and ``hilcal rollback``: read and check a parameter
+file, show its diff to the controller's live set, upload or roll back transactionally, and record every attempt
+(refused and failed ones too). They take a connected ``ControllerParams`` and never open a device themselves.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import ValidationError
+
+from drivers.controller_modbus import (
+    ControllerParams,
+    ParameterSet,
+    ParameterValidationError,
+    ParamsError,
+    UploadRecord,
+)
+from procedures.records.store import Records, now_iso
+
+
+class ParameterFileError(ParameterValidationError):
+    """A parameter file that cannot be read or is not a sane parameter set; nothing was written."""
+
+
+class UploadDeclined(ParamsError):
+    """The operator did not confirm the upload; nothing was written."""
+
+
+def _parameter_names() -> list[str]:
+    names = [f"leg{i}_a_{ax}_mm" for i in range(1, 7) for ax in "xyz"]
+    names += [f"leg{i}_b_{ax}_mm" for i in range(1, 7) for ax in "xyz"]
+    return names + [f"leg{i}_l0_mm" for i in range(1, 7)]
+
+
+PARAMETER_NAMES = tuple(_parameter_names())
+
+
+def read_parameter_file(path: Path | str) -> ParameterSet:
+    """A parameter JSON file {a_mm: 6x3, b_mm: 6x3, l0_mm: 6}; ParameterFileError with every problem named."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise ParameterFileError(f"{path}: cannot read: {err.strerror or err}") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ParameterFileError(f"{path}: not JSON: {err.msg} at line {err.lineno} column {err.colno}") from None
+    if not isinstance(data, dict):
+        raise ParameterFileError(f"{path}: expected a JSON object with keys a_mm, b_mm, l0_mm")
+    try:
+        return ParameterSet.model_validate(data)
+    except ValidationError as err:
+        problems = "; ".join(f"{_location(e['loc'])}: {e['msg']}" for e in err.errors())
+        raise ParameterFileError(f"{path}: not a valid parameter set (indices from 0): {problems}") from None
+
+
+def _location(loc: tuple[int | str, ...]) -> str:
+    """A pydantic error location as JSON-path-like text: a_mm[2][1]."""
+    if not loc:
+        return "(top level)"
+    return str(loc[0]) + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc[1:])
+
+
+def parameter_diff(live: ParameterSet, new: ParameterSet) -> list[dict[str, Any]]:
+    """Parameters whose float32 value changes: name, live_mm, new_mm, delta_mm (register order)."""
+    old_v, new_v = live.as_float32().to_vector(), new.as_float32().to_vector()
+    return [
+        {"name": name, "live_mm": float(a), "new_mm": float(b), "delta_mm": float(b - a)}
+        for name, a, b in zip(PARAMETER_NAMES, old_v, new_v, strict=True) if a != b
+    ]
+
+
+def format_diff(diff: list[dict[str, Any]]) -> str:
+    """The diff as a plain table (mm)."""
+    if not diff:
+        return "the live set already equals the new set"
+    lines = [f"{'parameter':<14} {'live (mm)':>12} {'new (mm)':>12} {'change (mm)':>12}"]
+    lines += [f"{d['name']:<14} {d['live_mm']:12.4f} {d['new_mm']:12.4f} {d['delta_mm']:+12.4f}" for d in diff]
+    return "\n".join(lines)
+
+
+def _local_record(
+    params_client: ControllerParams,
+    outcome: Literal["refused", "failed"],
+    error: str,
+    params_sha256: str | None = None,
+    operation: Literal["upload", "rollback", "save"] = "upload",
+) -> UploadRecord:
+    """An UploadRecord for an attempt that ended before (or outside) the driver's own transaction record."""
+    t = now_iso()
+    return UploadRecord(operation=operation, endpoint=params_client.endpoint, device_id=params_client.device_id,
+                        started_at=t, finished_at=t, outcome=outcome, error=error, params_sha256=params_sha256)
+
+
+def upload_parameter_file(
+    params_client: ControllerParams,
+    path_json: Path | str,
+    records: Records,
+    operator: str,
+    save: bool,
+    yes: bool,
+    confirm: Callable[[str], bool],
+    *,
+    machine: str | None = None,
+    station: str | None = None,
+) -> dict[str, Any]:
+    """Upload a parameter file to the controller after showing the diff to the live set and asking.
+
+    Returns {"record": UploadRecord dump or None, "diff": [...], "changed": bool, "file_sha256": str}. An
+    unchanged set is not re-uploaded (that would overwrite the rollback backup with the same set); with
+    save=True the live set is then only saved. Every attempt is recorded in `records`, refused and failed
+    ones too; those raise: ParameterFileError (bad file), UploadDeclined (operator said no) or the driver's
+    ParamsError (``err.record`` holds the UploadRecord). `machine` and `station` are recorded with each attempt.
+    """
+    try:
+        new = read_parameter_file(path_json)
+    except ParameterFileError as err:
+        err.record = _local_record(params_client, "refused", f"ParameterFileError: {err}")
+        records.record_upload(err.record, operator, machine=machine, station=station)
+        raise
+    sha = records.add_parameter_set(new.model_dump(), "file")
+    try:
+        live = params_client.read_live()
+    except ParamsError as err:
+        err.record = err.record or _local_record(params_client, "failed", f"{type(err).__name__}: {err}", sha)
+        records.record_upload(err.record, operator, machine=machine, station=station)
+        raise
+    records.add_parameter_set(live.model_dump(), "controller")
+    diff = parameter_diff(live, new)
+    result: dict[str, Any] = {"record": None, "diff": diff, "changed": bool(diff), "file_sha256": sha}
+    if not diff and not save:
+        return result
+    action = (f"upload {len(diff)} changed parameters" if diff else "save the live set (unchanged)") + (
+        " and save them to non-volatile memory" if diff and save else "")
+    prompt = f"{format_diff(diff)}\n\n{action} on {params_client.endpoint}?"
+    if not yes and not confirm(prompt):
+        declined = UploadDeclined(f"{action} on {params_client.endpoint}: declined by the operator; nothing written")
+        declined.record = _local_record(params_client, "refused", f"UploadDeclined: {declined}", sha)
+        records.record_upload(declined.record, operator, machine=machine, station=station)
+        raise declined
+    try:
+        record = params_client.upload(new, save=save) if diff else params_client.save()
+    except ParamsError as err:
+        err.record = err.record or _local_record(params_client, "failed", f"{type(err).__name__}: {err}", sha)
+        records.record_upload(err.record, operator, machine=machine, station=station)
+        raise
+    records.record_upload(record, operator, machine=machine, station=station)
+    result["record"] = record.model_dump()
+    return result
+
+
+def rollback_controller(params_client: ControllerParams, records: Records, operator: str, *,
+                        machine: str | None = None, station: str | None = None) -> dict[str, Any]:
+    """Swap the controller's live and backup sets (undo the last commit); recorded whatever the outcome.
+
+    Returns the UploadRecord dump; the driver's ParamsError (with ``err.record``) on refusal or failure.
+    """
+    try:
+        record = params_client.rollback()
+    except ParamsError as err:
+        err.record = err.record or _local_record(params_client, "failed", f"{type(err).__name__}: {err}",
+                                                 operation="rollback")
+        records.record_upload(err.record, operator, machine=machine, station=station)
+        raise
+    records.record_upload(record, operator, machine=machine, station=station)
+    return record.model_dump()
+

@@ -1,0 +1,233 @@
+"""The sign-off of `hilcal run --sim --acceptance iso9283`: the certificate (HTML and PDF), report.json's sign-off
+keys, the verdict with its exit code, the records and history, `hilcal certificate`, the simulated repeatability
+measured back, and the certificate in headless Chromium.
+
+Two simulated runs on a small plan (12 measure and 6 verify poses) keep this fast: one as the brief's command
+(no limits, 3 cycles), one with a repeatability configured in the simulated servo, 30 cycles and limits the machine
+cannot meet. The expected RP comes from a Monte Carlo through the nominal kinematics written here, not from hilcal.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+import subprocess
+import sys
+import unicodedata
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pypdf import PdfReader
+from typer.testing import CliRunner
+
+from hilcal.kinematics import Geometry, forward_kinematics, inverse_kinematics
+from hilcal.robot import Robot, default_robot
+from procedures.cli.app import app
+from procedures.cli.sim_station import SIM_TIMING
+from procedures.plan import make_plan, save_plan
+from tests.cli.browser_support import chromium, require_chromium, text
+
+pytestmark = pytest.mark.timeout(420)
+OPERATOR = "A. Tester"
+REPEATABILITY_MM = 0.02
+STATION = f"""
+name = "test bay"
+[machine]
+serial = "SIM-0001"
+[cmm]
+identity = "simulated CMM, serial 1"
+stated_uncertainty_mm = 0.002
+calibration_due = 2020-01-31
+[acceptance]
+max_position_mm = 0.5
+ap_position_mm = 0.5
+rp_position_mm = 0.02
+[timing]
+leg_speed_mm_s = {SIM_TIMING.leg_speed_mm_s}
+leg_accel_mm_s2 = {SIM_TIMING.leg_accel_mm_s2}
+settle_s = {SIM_TIMING.settle_s}
+cmm_s_per_pose = {SIM_TIMING.cmm_s_per_pose}
+move_overhead_s = {SIM_TIMING.move_overhead_s}
+"""
+
+
+def _hilcal(*args: str, records: Path) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "HILCAL_RECORDS": str(records), "COLUMNS": "200"}
+    return subprocess.run([sys.executable, "-m", "procedures.cli", *args], capture_output=True, text=True, env=env,
+                          timeout=400, check=False)
+
+
+@pytest.fixture(scope="module")
+def small_plan(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("plan") / "plan.json"
+    save_plan(make_plan(default_robot(), 0, n_measure=12, n_verify=6, timing=SIM_TIMING.timing()), path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def accepted(tmp_path_factory: pytest.TempPathFactory, small_plan: Path) -> tuple[Path, subprocess.CompletedProcess]:
+    """The brief's command (with 3 cycles and the small plan): no station, so no limits."""
+    tmp = tmp_path_factory.mktemp("accepted")
+    done = _hilcal("run", "--sim", "--yes", "--operator", OPERATOR, "--acceptance", "iso9283", "--cycles", "3",
+                   "--plan", str(small_plan), "--out", str(tmp / "run"), records=tmp / "records.sqlite")
+    return tmp, done
+
+
+@pytest.fixture(scope="module")
+def failed(tmp_path_factory: pytest.TempPathFactory, small_plan: Path) -> tuple[Path, subprocess.CompletedProcess]:
+    """A servo with 0.02 mm repeatability per leg, 30 cycles, and an RP limit it cannot meet."""
+    tmp = tmp_path_factory.mktemp("failed")
+    (tmp / "station.toml").write_text(STATION)
+    (tmp / "sim.toml").write_text(f"[controller]\nrepeatability_mm = {REPEATABILITY_MM}\nrepeatability_seed = 7\n")
+    done = _hilcal("run", "--sim", "--yes", "--operator", OPERATOR, "--acceptance", "iso9283",
+                   "--station", str(tmp / "station.toml"), "--sim-config", str(tmp / "sim.toml"),
+                   "--plan", str(small_plan), "--out", str(tmp / "run"), records=tmp / "records.sqlite")
+    return tmp, done
+
+
+def _pdf_text(path: Path) -> str:
+    """The PDF's text with ligatures (ﬁ) undone."""
+    return unicodedata.normalize("NFKC", "\n".join(page.extract_text() for page in PdfReader(path).pages))
+
+
+def test_accepted_run_writes_the_certificate_and_its_pdf(accepted: tuple[Path, subprocess.CompletedProcess]) -> None:
+    require_chromium()  # the PDF is printed by headless Chromium
+    tmp, done = accepted
+    assert done.returncode == 0, done.stdout + done.stderr
+    run = tmp / "run"
+    report = json.loads((run / "report.json").read_text())
+    assert report["operator"] == OPERATOR
+    assert report["machine"]["robot_name"] == "paper-table1" and report["station"]["simulated"] is True
+    assert report["software"]["name"] == "hilcal" and report["software"]["version"]
+    cert = report["certificate"]
+    assert cert["number"] == f"HILCAL-{report['run_id']}"
+    assert cert["verdict"] == "no acceptance limits set" and cert["limits"] == []
+    assert cert["decision_rule"]["key"] == "iso14253-1"
+    iso = report["iso9283"]
+    assert [p["pose"] for p in iso["poses"]] == ["P1", "P2", "P3", "P4", "P5"]
+    assert all(p["n_cycles"] == 3 for p in iso["poses"]) and iso["order"] == ["P1", "P5", "P4", "P3", "P2"]
+    for p in iso["poses"]:
+        assert p["ap_p_mm"]["unit"] == "mm" and p["ap_p_mm"]["U"] > 0 and p["rp_a_deg"]["unit"] == "deg"
+    after = report["uncertainty"]["after"]["max_position_mm"]
+    assert after["value"] == pytest.approx(report["verification"]["after"]["max_position_mm"]) and after["U"] > 0
+    phases = report["machine_time"]["phases"]
+    assert phases["acceptance"]["n_poses"] == 15 and phases["acceptance"]["actual_s"] > 0
+    estimate = done.stdout.split("Estimated machine time")[1].split("return home")[0]  # printed before motion
+    assert "acceptance" in estimate and done.stdout.index("Estimated machine time") < done.stdout.index("pose 1")
+    assert "certificate HILCAL-" in done.stdout
+    pdf = _pdf_text(run / "certificate.pdf")
+    for needle in (OPERATOR, cert["number"].split("-")[0], "no acceptance limits set", "ISO 9283", "RPl", "APP",
+                   "P1", "P5", "Calibration certificate"):
+        assert needle in pdf, needle
+    assert cert["number"].replace("-", "") in pdf.replace("-", "").replace("\n", "")
+    assert len(PdfReader(run / "certificate.pdf").pages) <= 2
+
+
+def test_records_and_history_show_the_verdict(accepted: tuple[Path, subprocess.CompletedProcess]) -> None:
+    tmp, _ = accepted
+    report = json.loads((tmp / "run" / "report.json").read_text())
+    db = sqlite3.connect(tmp / "records.sqlite")
+    try:
+        row = db.execute("SELECT operator, verdict, certificate_number, certificate_path FROM runs").fetchone()
+    finally:
+        db.close()
+    assert row[:3] == (OPERATOR, "no acceptance limits set", report["certificate"]["number"])
+    assert Path(row[3]) == (tmp / "run" / "certificate.pdf").resolve()
+    history = _hilcal("history", "--records", str(tmp / "records.sqlite"), records=tmp / "records.sqlite")
+    assert history.returncode == 0, history.stderr
+    assert "sign-off: no acceptance limits set" in history.stdout and report["certificate"]["number"] in history.stdout
+
+
+def test_certificate_command_regenerates_both_files(accepted: tuple[Path, subprocess.CompletedProcess],
+                                                    tmp_path: Path) -> None:
+    require_chromium()
+    run = accepted[0] / "run"
+    number = json.loads((run / "report.json").read_text())["certificate"]["number"]
+    (run / "certificate.pdf").unlink()
+    (run / "certificate.html").unlink()
+    result = CliRunner().invoke(app, ["certificate", str(run)])
+    assert result.exit_code == 0, result.output
+    assert (run / "certificate.pdf").is_file() and number in (run / "certificate.html").read_text()
+    assert OPERATOR in _pdf_text(run / "certificate.pdf")
+    missing = CliRunner().invoke(app, ["certificate", str(tmp_path)])
+    assert missing.exit_code == 2 and "report.json" in missing.output
+
+
+def test_limits_the_machine_cannot_meet_fail_with_exit_code_4(failed: tuple[Path, subprocess.CompletedProcess]
+                                                              ) -> None:
+    require_chromium()
+    tmp, done = failed
+    assert done.returncode == 4, done.stdout + done.stderr
+    output = done.stdout + done.stderr
+    assert "NOT ACCEPTED" in output and "rp_position_mm fail" in output
+    report = json.loads((tmp / "run" / "report.json").read_text())
+    cert = report["certificate"]
+    decisions = {c["key"]: c["decision"] for c in cert["limits"]}
+    assert cert["verdict"] == "fail"
+    assert decisions == {"max_position_mm": "pass", "ap_position_mm": "pass", "rp_position_mm": "fail"}
+    failing = next(c for c in cert["limits"] if c["key"] == "rp_position_mm")
+    assert failing["value"] - failing["U"] > failing["limit"] == 0.02
+    assert report["machine"]["serial"] == "SIM-0001" and report["station"]["name"] == "test bay"
+    assert report["instrument"]["overdue"] is True and "overdue" in " ".join(cert["warnings"])
+    assert report["instrument"]["stated_uncertainty_mm"] == 0.002 and report["uncertainty"]["cmm_pose_sd"]
+    pdf = _pdf_text(tmp / "run" / "certificate.pdf")
+    assert "Verdict: fail" in pdf and "ISO 9283 position repeatability RP_l" in pdf and "OVERDUE" in pdf
+    db = sqlite3.connect(tmp / "records.sqlite")
+    try:
+        assert db.execute("SELECT verdict, station, machine_serial FROM runs").fetchone() == (
+            "fail", "test bay", "SIM-0001")
+    finally:
+        db.close()
+
+
+def _expected_rp(robot: Robot, commanded: np.ndarray, sigma_mm: float, cycles: int, rng: np.random.Generator,
+                 experiments: int = 400) -> float:
+    """E[l̄ + 3 S_l] over experiments of `cycles` visits, each leg off by N(0, sigma²), nominal kinematics."""
+    geom = Geometry.nominal(robot)
+    legs = inverse_kinematics(geom, commanded)
+    errors = rng.normal(0.0, sigma_mm, (experiments * cycles, 6))
+    poses = forward_kinematics(geom, legs + errors, commanded).reshape(experiments, cycles, 6)
+    centre = poses[..., :3].mean(axis=1, keepdims=True)
+    lengths = np.sqrt(((poses[..., :3] - centre) ** 2).sum(axis=-1))
+    return float(np.mean(lengths.mean(axis=1) + 3.0 * lengths.std(axis=1, ddof=1)))
+
+
+def test_the_simulated_repeatability_is_measured_back(failed: tuple[Path, subprocess.CompletedProcess]) -> None:
+    tmp, done = failed
+    assert done.returncode == 4, done.stdout + done.stderr
+    iso = json.loads((tmp / "run" / "report.json").read_text())["iso9283"]
+    assert iso["cycles"] == 30 and all(p["n_cycles"] == 30 for p in iso["poses"])
+    robot = default_robot()
+    rng = np.random.default_rng(11)
+    expected = [_expected_rp(robot, np.array(p["commanded"]), REPEATABILITY_MM, 30, rng) for p in iso["poses"]]
+    measured = [p["rp_l_mm"]["value"] for p in iso["poses"]]
+    assert np.mean(measured) == pytest.approx(np.mean(expected), rel=0.10)
+    assert all(0.7 < m / e < 1.3 for m, e in zip(measured, expected, strict=True))
+
+
+def test_the_certificate_opens_in_headless_chromium(accepted: tuple[Path, subprocess.CompletedProcess]) -> None:
+    require_chromium()
+    run = accepted[0] / "run"
+    report = json.loads((run / "report.json").read_text())
+    with chromium() as browser:
+        browser.get((run / "certificate.html").resolve().as_uri())
+        assert text(browser, "certificate-number") == report["certificate"]["number"]
+        assert text(browser, "operator") == OPERATOR
+        assert "no acceptance limits set" in text(browser, "verdict")
+        rows = browser.find_elements("css selector", "#iso-repeatability tr")
+        assert len(rows) == 6 and rows[1].text.startswith("P1")
+        assert browser.execute_script("return document.documentElement.scrollWidth <= window.innerWidth")
+        browser.get((run / "report.html").resolve().as_uri())
+        links = [a.get_attribute("href") for a in browser.find_elements("css selector", "a")]
+        assert any(h.endswith("certificate.pdf") for h in links) and any(h.endswith("certificate.html") for h in links)
+
+
+def test_design_prints_the_iso_poses_and_the_test_time(tmp_path: Path) -> None:
+    result = CliRunner().invoke(app, ["design", "--acceptance", "iso9283", "--cycles", "4"])
+    assert result.exit_code == 0, result.output
+    rows = {line.split("│")[1].strip(): line for line in result.output.splitlines() if line.startswith("│ P")}
+    assert sorted(rows) == ["P1", "P2", "P3", "P4", "P5"]
+    assert "3100.000" in rows["P1"] and "-200.000" in rows["P2"] and "2900.000" in rows["P2"]
+    assert "20 measurements" in result.output and "P1, P5, P4, P3, P2" in result.output
