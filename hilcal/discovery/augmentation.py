@@ -61,11 +61,11 @@ def augment(robot: Robot, geometry: Geometry, length_mm: float, information: np.
     bands: list[float] = []
     available = np.ones(len(pool), dtype=bool)
     for _ in range(MAX_EXTRA_POSES):
-        A = np.einsum("cip,pq->ciq", Jc, C)
-        S = sigma2 * np.eye(6) + np.einsum("ciq,cjq->cij", A, Jc)
+        A = Jc @ C
+        S = sigma2 * np.eye(6) + A @ np.swapaxes(Jc, 1, 2)
         Ab = A[:, :, block]
         K = np.linalg.solve(S, Ab)
-        reduced = C[np.ix_(block, block)] - np.einsum("cib,cid->cbd", Ab, K)
+        reduced = C[np.ix_(block, block)] - np.swapaxes(Ab, 1, 2) @ K
         sign, logdet = np.linalg.slogdet(reduced)
         score = np.where((sign > 0) & available, logdet, np.inf)
         best = int(np.argmin(score))

@@ -10,6 +10,7 @@ the refitted geometry with metres of opposite corrections).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import structlog
@@ -207,5 +208,16 @@ def model_state(p: Problem, fit: IdentificationResult, groups: list[TermGroup]) 
 
 def group_columns(p: Problem, state: ModelState, d_dl0: np.ndarray, group: TermGroup) -> np.ndarray:
     """A candidate group's whitened Jacobian columns at the current model."""
-    cols = np.einsum("nal,nlq->naq", d_dl0, p.phi(group)).reshape(6 * p.mea.n, -1)
-    return whiten(cols, state.W, state.n_poses)
+    return groups_columns(p, state, d_dl0, [group])[0]
+
+
+def groups_columns(p: Problem, state: ModelState, d_dl0: np.ndarray, groups: list[TermGroup]) -> list[np.ndarray]:
+    """`group_columns` of many groups in one product: the whitener and d(residual)/d(dl0) act on every column
+    of a pose alike, so their product is formed once and applied to all the groups' regressors together."""
+    if not groups:
+        return []
+    whitened_d = np.einsum("ij,njl->nil", state.W, d_dl0)
+    phis = [p.phi(g) for g in groups]
+    cols = whitened_d @ np.concatenate(phis, axis=2)
+    bounds = np.cumsum([0] + [ph.shape[2] for ph in phis])
+    return [cols[:, :, a:b].reshape(6 * p.mea.n, -1) for a, b in itertools.pairwise(bounds)]

@@ -97,16 +97,25 @@ class LeaveOneOut:
         return out
 
     def residuals_batch(self, resid: np.ndarray, bases: list[np.ndarray]) -> np.ndarray:
-        """`residuals` for G models at once: in-sample residuals [G, 6N], each with its own added basis Qk."""
-        G = len(bases)
-        width = max((b.shape[1] for b in bases), default=0)
-        Qk = np.zeros((G, resid.shape[1], width))
+        """`residuals` for G models at once: in-sample residuals [G, 6N], each with its own added basis Qk.
+
+        Models are batched by the width of their basis, so a few wide ones do not pad the many narrow ones."""
+        out = np.empty_like(resid)
+        by_width: dict[int, list[int]] = {}
         for g, b in enumerate(bases):
-            Qk[g, :, :b.shape[1]] = b
+            by_width.setdefault(b.shape[1], []).append(g)
+        for width, idx in by_width.items():
+            Qk = np.stack([bases[g] for g in idx]) if width else np.zeros((len(idx), resid.shape[1], 0))
+            out[idx] = self._batch(resid[idx], Qk)
+        return out
+
+    def _batch(self, resid: np.ndarray, Qk: np.ndarray) -> np.ndarray:
+        """Left-out residuals [G, 6N] of G models whose added bases Qk [G, 6N, q] share one width q."""
+        G = resid.shape[0]
         out = np.empty_like(resid)
         shaped = out.reshape(G, self.n, 6)
-        Qkc = Qk.reshape(G, self.n, 6, width)[:, self.singles]
-        A = np.eye(6) - self.H_single[None] - Qkc @ np.swapaxes(Qkc, 2, 3)
+        Qkc = Qk.reshape(G, self.n, 6, -1)[:, self.singles]
+        A = np.eye(6) - self.H_single[None] - np.einsum("gnik,gnjk->gnij", Qkc, Qkc)
         rc = resid.reshape(G, self.n, 6)[:, self.singles]
         shaped[:, self.singles] = _solve_or_inf(A, rc)
         for rows, Hm in zip(self.multi_rows, self.H_multi, strict=True):
@@ -128,8 +137,9 @@ def _solve_or_inf(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     if suspect.any():
         eig = np.linalg.eigvalsh(A[suspect])
         degenerate[suspect] = eig[..., 0] <= eig[..., -1] / MAX_CONDITION
-    A = A.copy()
-    A[degenerate] = np.eye(A.shape[-1])
+    if degenerate.any():
+        A = A.copy()
+        A[degenerate] = np.eye(A.shape[-1])
     e = np.linalg.solve(A, b[..., None])[..., 0]
     e[degenerate] = np.inf
     return e

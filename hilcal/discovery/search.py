@@ -34,6 +34,7 @@ from hilcal.discovery.fitting import (
     final_fit,
     fit_model,
     group_columns,
+    groups_columns,
     leg_residuals,
     model_state,
     predict,
@@ -162,7 +163,7 @@ def _select(p: Problem, candidates: list[TermGroup], alpha: float, n_boot: int, 
     dropped: set[str] = set()
     for index in range(1, max_steps + 1):
         cv_now = state.cv_mm
-        columns = [group_columns(p, state, d_dl0, g) for g in remaining]
+        columns = groups_columns(p, state, d_dl0, remaining)
         tests = assess(state, remaining, columns, alpha / index, n_boot, seed + index)
         if index == 1:
             sel.first_tests = tests

@@ -192,6 +192,25 @@ def _bases(Q: np.ndarray, dof: int, columns: list[np.ndarray]) -> list[tuple[int
     return out
 
 
+def _projections(R: np.ndarray, Q: np.ndarray, Q_all: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """((Q'R, Q_all'R), |R|^2 per draw) of null draws R [6N, B]; the candidate bases are orthogonal to Q, so
+    Q_all'R is already the projection of the model-projected draws."""
+    return (Q.T @ R, Q_all.T @ R), np.sum(R**2, axis=0)
+
+
+def _wild_projections(r0: np.ndarray, Q: np.ndarray, Q_all: np.ndarray, n_poses: int, signs: np.ndarray
+                      ) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """`_projections` of the wild draws R[6n + a, b] = adj[n, a] * sign[n, b] without forming R: a basis acts on a
+    draw through its per-pose inner products with the adjusted residuals (6x fewer flops than the full product)."""
+    adj = leverage_adjusted(r0, Q, n_poses)
+
+    def per_pose(basis: np.ndarray) -> np.ndarray:
+        return np.einsum("nak,na->kn", basis.reshape(n_poses, 6, -1), adj)
+
+    total = np.full(signs.shape[1], float(np.sum(adj**2)))
+    return (per_pose(Q) @ signs, per_pose(Q_all) @ signs), total
+
+
 def assess(state: ModelState, groups: list[TermGroup], columns: list[np.ndarray], alpha: float, n_boot: int,
            seed: int) -> list[GroupTest]:
     """Test every group (its whitened Jacobian columns given) against the current model."""
@@ -215,14 +234,13 @@ def assess(state: ModelState, groups: list[TermGroup], columns: list[np.ndarray]
 
     rng = np.random.default_rng(seed)
     signs = rng.choice([-1.0, 1.0], size=(state.n_poses, n_boot))
-    wild = (leverage_adjusted(r0, Q, state.n_poses)[:, :, None] * signs[:, None, :]).reshape(m, n_boot)
     gauss = rng.standard_normal((m, n_boot))
     adjusted = []
     families = np.array([g.kind for g, _, _ in kept])
-    for R in (wild, gauss):
-        R = R - Q @ (Q.T @ R)
-        rss = np.sum(R**2, axis=0)
-        e_star = np.add.reduceat((Q_all.T @ R) ** 2, offsets, axis=0)
+    for projections, total in (_wild_projections(r0, Q, Q_all, state.n_poses, signs), _projections(gauss, Q, Q_all)):
+        model_part, candidate_part = projections
+        rss = total - np.sum(model_part**2, axis=0)
+        e_star = np.add.reduceat(candidate_part**2, offsets, axis=0)
         f_star = (e_star / ranks[:, None]) / ((rss[None, :] - e_star) / (dof - ranks)[:, None])
         adjusted.append(_min_p_adjust(p_obs, f_star, ranks, dof, families))
 
