@@ -58,6 +58,9 @@ def run_fault_case(case: FaultCase, n_boot: int) -> dict[str, Any]:
         "impossible_named": impossible, "alias_named": alias_named, "alias_reported": alias_reported,
         "before_mm": diag.before.position_mm.rms, "after_mm": diag.after.position_mm.rms,
         "floor_mm": AccuracySummary.of(rec.meas[verify], built.true_poses[verify]).position_mm.rms,
+        "after_unshifted_mm": (diag.after.position_mm.rms if diag.session_shift is None
+                               or diag.session_shift.verify_without_shift is None
+                               else diag.session_shift.verify_without_shift.position_mm.rms),
         "not_converged": list(diag.not_converged), "ok": ok, "seconds": elapsed,
     }
 
@@ -74,7 +77,8 @@ def summarize_faults(results: list[dict[str, Any]]) -> dict[str, Any]:
         lo, hi = clopper_pearson(k, n)
         return {"k": k, "n": n, "rate": k / n if n else float("nan"), "ci": (lo, hi),
                 "median_value_error": median([r["max_value_error"] for r in rows]),
-                "median_after_over_floor": median([r["after_mm"] / r["floor_mm"] for r in rows])}
+                "median_after_over_floor": median([r["after_mm"] / r["floor_mm"] for r in rows]),
+                "median_unshifted_over_floor": median([r["after_unshifted_mm"] / r["floor_mm"] for r in rows])}
 
     done = [r for r in results if r["done_when"]]
     return {
@@ -112,9 +116,18 @@ def fault_section(summary: dict[str, Any]) -> list[str]:
                      f"{d['median_value_error']:.2%}.")
     lines.append(f"- Hydraulic effects named on electric legs: {summary['hydraulic_on_electric']} (target 0); "
                  f"impossible values named: {summary['impossible_named']} (target 0).")
-    lines += ["", "| case | passes | median value error | median after / floor |", "|---|---|---|---|"]
+    lines += ["", "| case | passes | median value error | median after / floor | same, held-out zero shift removed |",
+              "|---|---|---|---|---|"]
     for name, d in summary["cells"].items():
-        lines.append(f"| {name} | {pct(d)} | {d['median_value_error']:.2%} | {d['median_after_over_floor']:.2f} |")
+        lines.append(f"| {name} | {pct(d)} | {d['median_value_error']:.2%} | {d['median_after_over_floor']:.2f} | "
+                     f"{d['median_unshifted_over_floor']:.2f} |")
+    lines += ["", " ".join([
+        "After / floor: held-out RMS position error of the final model over that of the measured against the true",
+        "pose. The electric machine is re-homed at each power-on, so its verify rows (a third session) start from",
+        "leg zeros that moved by a few µm (N(0, (3 µm)^2) per leg): no model fitted on the other sessions can",
+        "predict that, and the diagnosis reports it as a zero shift in the held-out rows instead of fitting them.",
+        "The last column removes the shift that the diagnosis estimated on the verify rows (`session_shift`).",
+        "The declared-hydraulic cases have no re-homing."])]
     if summary["failures"]:
         lines += ["", "Failed cases (first 10): " + "; ".join(
             f"{f['actuators']} {f['n_fault_legs']} leg(s) {'alias' if f['alias'] else 'no alias'} seed {f['seed']}: "

@@ -58,6 +58,13 @@ def _span(values: np.ndarray, fmt: str) -> str:
     return format(lo, fmt) if np.isclose(lo, hi, rtol=0.05) else f"{format(lo, fmt)}-{format(hi, fmt)}"
 
 
+def _micro_span(values_um: np.ndarray, per: str) -> str:
+    """A span of values given in µm per something, in µm or, from 10 mm up, in mm (no 1.58e+05 µm in a sentence)."""
+    if float(np.max(np.abs(values_um))) >= 1e4:
+        return f"{_span(values_um / 1000.0, '.3g')} mm {per}"
+    return f"{_span(values_um, '.3g')} µm {per}"
+
+
 def _scale_sentence(v: np.ndarray, se: np.ndarray, legs: list[int], faults: list[int]) -> str:
     """The gain g (ppm of the reported stroke) as the reading's error: reported / true travel - 1 = g / (1 - g)."""
     def amount(g: float, s: float) -> str:
@@ -81,13 +88,15 @@ def _sentence(group: TermGroup, v: np.ndarray, se: np.ndarray, legs: list[int], 
         return _scale_sentence(v, se, legs, faults)
     if group.effect == "leg_compliance":
         sag = v[idx] * np.max(np.abs(ctx.force_kn[:, idx]), axis=0)
-        return (f"{_legs(shown).capitalize()} sag under the platform's weight: compliance {_span(v[idx], '.3g')} µm/kN "
+        compliance = _micro_span(v[idx], "per kN")
+        return (f"{_legs(shown).capitalize()} sag under the platform's weight: compliance {compliance} "
                 f"(stiffness {_span(1000.0 / np.maximum(v[idx], 1e-12), '.3g')} N/µm), up to "
                 f"{np.max(sag):.1f} µm at the largest load")
     if group.effect in ("oil_column_compliance", "drive_compliance"):
         sag = v[idx] * np.max(np.abs(ctx.force_kn[:, idx] * ctx.stroke_mm[:, idx]) * 1e-3, axis=0)
-        return (f"{_legs(shown).capitalize()} sag more as they extend: {_span(v[idx], '.3g')} µm per kN of load and "
-                f"metre of stroke, up to {np.max(sag):.1f} µm at full stroke and load")
+        compliance = _micro_span(v[idx], "per kN of load and metre of stroke")
+        return (f"{_legs(shown).capitalize()} sag more as they extend: {compliance}, up to {np.max(sag):.1f} µm at "
+                "full stroke and load")
     if group.effect == "thermal_expansion":
         grow = v[0] * 1e-6 * np.mean(ctx.legs_mm) * (np.ptp(ctx.temp_c) if ctx.temp_c is not None else 0.0)
         return (f"The legs grow {v[0]:.3g} ± {se[0]:.2g} ppm/K with temperature ({grow * 1000:.1f} µm over the "
