@@ -81,7 +81,7 @@ def _pose(table: Table, pose: PoseColumns, robot: Robot | None, *, allow_empty_r
     out = np.full((table.n, 6), np.nan)
     out[known, :3] = conv.position_mm(values[known, :3], pose.position.unit)
     try:
-        out[known, 3:] = conv.orientation_deg(values[known, 3:], pose.orientation.kind)
+        out[known, 3:] = conv.orientation_deg(values[known, 3:], pose.orientation.kind, pose.orientation.sequence)
     except ValueProblem as p:
         row = int(np.flatnonzero(known)[p.row])
         raise _at(table, pose.orientation.columns, ValueProblem(row, p.column, p.detail)) from None

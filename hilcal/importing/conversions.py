@@ -9,6 +9,7 @@ name the file, line and column.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from hilcal.importing.errors import ValueProblem
 from hilcal.importing.mapping import LegsMap
@@ -103,9 +104,25 @@ def _from_matrix(values: np.ndarray) -> np.ndarray:
     return pose_from_matrix(U @ Vt, np.zeros((len(R), 3)))[:, 3:]
 
 
-def orientation_deg(values: np.ndarray, kind: str) -> np.ndarray:
-    """(n, 3) roll, pitch, yaw in degrees from (n, k) orientation columns of the given kind."""
+def _from_rotation(R: Rotation) -> np.ndarray:
+    return pose_from_matrix(R.as_matrix().reshape(-1, 3, 3), np.zeros((len(R), 3)))[:, 3:]
+
+
+def orientation_deg(values: np.ndarray, kind: str, sequence: str | None = None) -> np.ndarray:
+    """(n, 3) roll, pitch, yaw in degrees from (n, k) orientation columns of the given kind (Euler kinds: angles in
+    the order of `sequence`, scipy's convention; rotation vectors: axis times angle)."""
     v = np.asarray(values, dtype=float)
+    if kind in ("euler_deg", "euler_rad"):
+        if sequence is None:
+            raise ValueError("the euler kinds need a sequence")
+        return _from_rotation(Rotation.from_euler(sequence, v, degrees=kind == "euler_deg"))
+    if kind in ("rotvec_deg", "rotvec_rad"):
+        angle = np.linalg.norm(v, axis=1)
+        if kind == "rotvec_rad" and np.any(angle > np.pi + 1e-6):
+            i = int(np.argmax(angle))
+            raise ValueProblem(i, 0, f"rotation vector of {angle[i]:g} rad, more than π: are these degrees "
+                               "(rotvec_deg)?")
+        return _from_rotation(Rotation.from_rotvec(v, degrees=kind == "rotvec_deg"))
     if kind == "rpy_deg":
         return v.copy()
     if kind == "rpy_rad":

@@ -6,6 +6,7 @@ are a contract used by files outside this repository; docs/import.md documents e
 
 from __future__ import annotations
 
+import re
 import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
@@ -21,10 +22,15 @@ PerLeg = float | Annotated[list[float], Field(min_length=6, max_length=6)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
 LegUnit = Literal["mm", "m", "count", "rev"]
-OrientationKind = Literal["quaternion_xyzw", "quaternion_wxyz", "rpy_deg", "rpy_rad", "matrix"]
+OrientationKind = Literal["quaternion_xyzw", "quaternion_wxyz", "rpy_deg", "rpy_rad", "matrix", "euler_deg",
+                          "euler_rad", "rotvec_deg", "rotvec_rad"]
 ORIENTATION_COLUMNS: dict[str, int] = {
-    "quaternion_xyzw": 4, "quaternion_wxyz": 4, "rpy_deg": 3, "rpy_rad": 3, "matrix": 9,
+    "quaternion_xyzw": 4, "quaternion_wxyz": 4, "rpy_deg": 3, "rpy_rad": 3, "matrix": 9, "euler_deg": 3,
+    "euler_rad": 3, "rotvec_deg": 3, "rotvec_rad": 3,
 }
+EULER_SEQUENCE = re.compile(r"^(?:[xyz]{3}|[XYZ]{3})$")
+"""Euler axis sequences as scipy writes them: lower case about the fixed (base) axes, upper case about the moving
+(platform) axes, angles in the order of the letters."""
 MIN_TARGET_SPREAD_MM = 1.0
 """The targets of one body must span a triangle: its second singular value at least this (mm)."""
 
@@ -89,6 +95,8 @@ class OrientationMap(_Strict):
 
     columns: list[str]
     kind: OrientationKind
+    sequence: str | None = Field(default=None, description="euler kinds only: e.g. 'ZYX' (moving axes) or 'xyz' "
+                                 "(fixed axes), the columns' angles in that order")
 
     _names = field_validator("columns")(_distinct)
 
@@ -97,6 +105,14 @@ class OrientationMap(_Strict):
         want = ORIENTATION_COLUMNS[self.kind]
         if len(self.columns) != want:
             raise ValueError(f"kind {self.kind!r} needs {want} columns, got {len(self.columns)}")
+        if self.kind.startswith("euler"):
+            seq = self.sequence or ""
+            if not EULER_SEQUENCE.match(seq) or seq[0].lower() == seq[1].lower() or seq[1].lower() == seq[2].lower():
+                raise ValueError(f"kind {self.kind!r} needs sequence = three axes such as 'ZYX' (about the moving "
+                                 "axes) or 'xyz' (about the fixed axes), no axis twice in a row; "
+                                 f"got {self.sequence!r}")
+        elif self.sequence is not None:
+            raise ValueError(f"sequence is only for the euler kinds, not {self.kind!r}")
         return self
 
 

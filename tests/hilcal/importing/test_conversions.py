@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from hilcal.importing import map_from_dict
 from hilcal.importing.conversions import check_legs, check_pose, legs_mm, orientation_deg, position_mm
 from hilcal.importing.errors import ValueProblem
+from hilcal.importing.mapping import OrientationMap
 
 
 def _rpy(n: int, rng: np.random.Generator) -> np.ndarray:
@@ -93,3 +94,48 @@ def test_without_a_robot_a_forgotten_zero_is_caught_by_the_legs_range():
     with pytest.raises(ValueProblem) as info:
         check_legs(legs_mm(readings, legs), readings, legs, None)
     assert (info.value.row, info.value.column) == (3, 2) and "more than 3 times" in str(info.value)
+
+
+def _rx(a: float) -> np.ndarray:
+    c, s = np.cos(np.radians(a)), np.sin(np.radians(a))
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def _ry(a: float) -> np.ndarray:
+    c, s = np.cos(np.radians(a)), np.sin(np.radians(a))
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def _rz(a: float) -> np.ndarray:
+    c, s = np.cos(np.radians(a)), np.sin(np.radians(a))
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def test_euler_sequences_about_moving_and_fixed_axes_match_hand_built_matrices():
+    a, b, c = 12.0, -7.5, 31.0
+    moving = _rx(a) @ _ry(b) @ _rz(c)
+    fixed = _rz(c) @ _ry(b) @ _rx(a)
+    expected_moving = orientation_deg(moving.reshape(1, 9), "matrix")
+    expected_fixed = orientation_deg(fixed.reshape(1, 9), "matrix")
+    np.testing.assert_allclose(orientation_deg(np.array([[a, b, c]]), "euler_deg", "XYZ"), expected_moving, atol=1e-9)
+    np.testing.assert_allclose(orientation_deg(np.array([[a, b, c]]), "euler_deg", "xyz"), expected_fixed, atol=1e-9)
+    np.testing.assert_allclose(orientation_deg(np.radians([[c, b, a]]), "euler_rad", "ZYX"), [[a, b, c]], atol=1e-9)
+
+
+def test_rotation_vectors_in_degrees_and_radians():
+    np.testing.assert_allclose(orientation_deg(np.array([[0.0, 0.0, 30.0]]), "rotvec_deg"), [[0, 0, 30]], atol=1e-9)
+    np.testing.assert_allclose(orientation_deg(np.array([[np.radians(-20.0), 0, 0]]), "rotvec_rad"), [[-20, 0, 0]],
+                               atol=1e-9)
+    with pytest.raises(ValueProblem, match="are these degrees"):
+        orientation_deg(np.array([[0.0, 0.0, 0.1], [0.0, 0.0, 30.0]]), "rotvec_rad")
+
+
+@pytest.mark.parametrize(("orientation", "words"), [
+    ({"columns": ["a", "b", "c"], "kind": "euler_deg"}, "needs sequence"),
+    ({"columns": ["a", "b", "c"], "kind": "euler_deg", "sequence": "XXY"}, "no axis twice in a row"),
+    ({"columns": ["a", "b", "c"], "kind": "euler_deg", "sequence": "XyZ"}, "needs sequence"),
+    ({"columns": ["a", "b", "c"], "kind": "rpy_deg", "sequence": "ZYX"}, "only for the euler kinds"),
+])
+def test_euler_sequence_is_checked_in_the_map(orientation, words):
+    with pytest.raises(ValueError, match=words):
+        OrientationMap(**orientation)
