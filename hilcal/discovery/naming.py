@@ -59,8 +59,8 @@ def _span(values: np.ndarray, fmt: str) -> str:
 
 
 def _micro_span(values_um: np.ndarray, per: str) -> str:
-    """A span of values given in µm per something, in µm or, from 10 mm up, in mm (no 1.58e+05 µm in a sentence)."""
-    if float(np.max(np.abs(values_um))) >= 1e4:
+    """A span of values given in µm per something, in µm or, from 1 mm up, in mm (no 1.58e+05 µm in a sentence)."""
+    if float(np.max(np.abs(values_um))) >= 1e3:
         return f"{_span(values_um / 1000.0, '.3g')} mm {per}"
     return f"{_span(values_um, '.3g')} µm {per}"
 

@@ -112,7 +112,9 @@ def shapes_for(
     chosen: list[TermGroup], steps: list[Step], before: AccuracySummary | None,
     alternatives: dict[str, tuple[TermGroup, ...]], seed: int = 0,
 ) -> list[Shape]:
-    """A Shape for every generic group of the final model, with extra poses where it is not pinned down."""
+    """A Shape for every generic group of the final model, with extra poses where it is not pinned down. An all-leg
+    group keeps the legs where it is larger than twice the residual sigma (at least its largest leg, so that every
+    chosen group is described)."""
     shapes = []
     offset = N_GEO
     verify = [before, *[s.verify for s in steps]]
@@ -125,11 +127,10 @@ def shapes_for(
         if g.kind != GENERIC or g.curve is None:
             continue
         legs = [g.leg] if g.leg is not None else list(range(6))
-        for leg in legs:
-            local = g.leg_columns(leg)
-            shape = _shape(robot, ctx, final, cov, J, sigma2, chosen, g, leg, start + local, local, verify, step_of,
-                           alternatives, seed)
-            if g.leg is None and shape.amplitude_mm <= 2.0 * np.sqrt(sigma2):
-                continue
-            shapes.append(shape)
+        group_shapes = [_shape(robot, ctx, final, cov, J, sigma2, chosen, g, leg, start + g.leg_columns(leg),
+                               g.leg_columns(leg), verify, step_of, alternatives, seed) for leg in legs]
+        large = [s for s in group_shapes if s.amplitude_mm > 2.0 * np.sqrt(sigma2)]
+        if g.leg is None:
+            group_shapes = large or [max(group_shapes, key=lambda s: s.amplitude_mm)]
+        shapes.extend(group_shapes)
     return shapes
