@@ -8,6 +8,7 @@ non-numeric cells, NaN, duplicate rows, units that do not fit the values). Rows 
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -17,6 +18,7 @@ import numpy as np
 
 from hilcal.importing import conversions as conv
 from hilcal.importing.errors import ImportFileError, ValueProblem
+from hilcal.importing.frames import FrameAlignmentError, align_frames
 from hilcal.importing.mapping import ImportMap, OrientationMap, PoseColumns
 from hilcal.importing.sessions import (
     HoldOut,
@@ -94,12 +96,14 @@ def _pose(table: Table, pose: PoseColumns, robot: Robot | None, *, allow_empty_r
 
 
 def _measured(table: Table, mapping: ImportMap, robot: Robot | None) -> tuple[np.ndarray, np.ndarray | None]:
-    """The measured pose (n, 6) and, from target points, the registration RMS (n,)."""
+    """The measured pose (n, 6) and, from target points, the registration RMS (n,). Poses still to be aligned to the
+    base frame are checked after the alignment."""
     targets = mapping.targets
+    aligned_later = mapping.frame.align != "none"
     if targets is None:
         assert mapping.position is not None and mapping.orientation is not None
         columns = PoseColumns(position=mapping.position, orientation=mapping.orientation)
-        return _pose(table, columns, robot, allow_empty_rows=False), None
+        return _pose(table, columns, None if aligned_later else robot, allow_empty_rows=False), None
     scale = conv.MM_PER_UNIT[targets.unit]
     points = {body: scale * table.numbers([c for t in getattr(targets, body) for c in t.columns]).reshape(
         table.n, -1, 3) for body in ("platform", "base") if getattr(targets, body)}
@@ -109,11 +113,50 @@ def _measured(table: Table, mapping: ImportMap, robot: Robot | None) -> tuple[np
                                targets.layout("base") if targets.base else None)
     except ValueProblem as p:
         raise _at(table, first_columns, p) from None
-    try:
-        conv.check_pose(fit.pose, robot)
-    except ValueProblem as p:
-        raise _at(table, [f"targets {', '.join(t.name for t in targets.platform)}"] * 6, p) from None
+    if not aligned_later:
+        try:
+            conv.check_pose(fit.pose, robot)
+        except ValueProblem as p:
+            raise _at(table, _pose_labels(mapping), p) from None
     return fit.pose, fit.rms_mm
+
+
+def _pose_labels(mapping: ImportMap) -> list[str]:
+    """The column to blame for each of x, y, z, roll, pitch, yaw of the measured pose."""
+    if mapping.targets is not None:
+        return [f"targets {', '.join(t.name for t in mapping.targets.platform)}"] * 6
+    assert mapping.position is not None and mapping.orientation is not None
+    return [*mapping.position.columns, *_orientation_labels(mapping.orientation)]
+
+
+def _align(rows: list[_FileRows], mapping: ImportMap, robot: Robot | None) -> tuple[list[_FileRows], list[str]]:
+    """Measured poses from the instrument's frame into the base frame ([frame] align), checked there; notes."""
+    mode = mapping.frame.align
+    if mode == "none":
+        return rows, []
+    if robot is None:
+        raise ImportFileError("the mapping file", f"[frame] align = {mode!r} needs the robot file (--robot): the "
+                              "nominal geometry turns leg lengths into the poses the instrument's frame is fitted to")
+    parts = [rows] if mode == "shared" else [[r] for r in rows]
+    out: list[_FileRows] = []
+    notes = []
+    for part in parts:
+        try:
+            fit = align_frames(np.concatenate([r.meas for r in part]), np.concatenate([r.legs_mm for r in part]),
+                               robot)
+        except FrameAlignmentError as e:
+            raise ImportFileError(", ".join(r.table.source for r in part), str(e)) from None
+        where = "all files" if mode == "shared" else part[0].table.source
+        notes.append(f"[frame] aligned ({where}): {fit.describe()}")
+        for r in part:
+            meas = fit.apply(r.meas)
+            try:
+                conv.check_pose(meas, robot)
+            except ValueProblem as p:
+                raise _at(r.table, _pose_labels(mapping), ValueProblem(p.row, p.column, p.detail + " (after the "
+                          "[frame] alignment)")) from None
+            out.append(dataclasses.replace(r, meas=meas))
+    return out, notes
 
 
 def _convert(table: Table, mapping: ImportMap, robot: Robot | None, hold_out: HoldOut | None) -> _FileRows:
@@ -277,7 +320,7 @@ def import_recording(
     _check_columns(tables, mapping)
     _hold_out_file(tables, hold_out)
     _check_duplicates(tables, mapping.columns())
-    rows = [_convert(t, mapping, robot, hold_out) for t in tables]
+    rows, frame_notes = _align([_convert(t, mapping, robot, hold_out) for t in tables], mapping, robot)
     time_s = _clocks(rows, mapping)
     extra: dict[str, np.ndarray] = {}
     if mapping.targets is not None or mapping.fit_rms is not None:
@@ -304,4 +347,5 @@ def import_recording(
     except RecordingError as err:
         raise _recording_error(err, rows) from None
     return ImportResult(recording=rec, sessions=summarise(rec, file_of_row, robot),
-                        files=tuple(t.source for t in tables), notes=tuple(_notes(rows, mapping, robot, hold_out)))
+                        files=tuple(t.source for t in tables),
+                        notes=(*frame_notes, *_notes(rows, mapping, robot, hold_out)))

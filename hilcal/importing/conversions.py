@@ -160,4 +160,5 @@ def check_pose(pose: np.ndarray, robot: Robot | None) -> None:
     margin = f"{POSITION_MARGIN_MM:g} mm" if k < 3 else f"{ANGLE_MARGIN_DEG:g} deg"
     where = "the plausible range" if robot is None else f"the robot's workspace widened by {margin}"
     raise ValueProblem(i, k, f"{AXES[k]} = {pose[i, k]:.6g} {unit} after conversion, outside {where} "
-                       f"[{limits[k, 0]:g}, {limits[k, 1]:g}] {unit}: check the unit or kind")
+                       f"[{limits[k, 0]:g}, {limits[k, 1]:g}] {unit}: check the unit or kind (poses in the "
+                       "instrument's own frame: set [frame] align)")

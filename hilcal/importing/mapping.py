@@ -220,6 +220,14 @@ class FitRmsMap(_Strict):
     unit: Literal["mm", "m"] = "mm"
 
 
+class FrameMap(_Strict):
+    """Poses logged in the instrument's own frame: align them to the base frame by the leg lengths (needs the robot).
+
+    ``"shared"``: one instrument frame for every file; ``"per_file"``: the instrument was set up anew for each file."""
+
+    align: Literal["none", "shared", "per_file"] = "none"
+
+
 class CsvMap(_Strict):
     """How the files are written: delimiter, decimal mark, and the line of the header (lines above it are skipped)."""
 
@@ -246,6 +254,7 @@ class ImportMap(_Strict):
     phase: PhaseMap | None = None
     temperature: TemperatureMap | None = None
     fit_rms: FitRmsMap | None = None
+    frame: FrameMap = Field(default_factory=FrameMap)
     csv: CsvMap = Field(default_factory=CsvMap)
 
     @model_validator(mode="after")

@@ -1,0 +1,117 @@
+"""Poses logged in an instrument's frame: [frame] align finds the instrument's frame and the target's place on the
+platform, and the aligned recording gives the same diagnosis as the recording in the base frame."""
+
+from __future__ import annotations
+
+import csv
+import shutil
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from hilcal.discovery.search import diagnose
+from hilcal.importing import ImportFileError, import_recording, load_map, parse_hold_out
+from hilcal.importing.frames import FrameAlignmentError, align_frames
+from hilcal.kinematics import Geometry, inverse_kinematics
+from hilcal.recording import read_recording
+from hilcal.robot import load_robot
+from hilcal.workspace import random_poses
+from tests.hilcal.importing.support import EXAMPLES
+
+LOGGER = EXAMPLES / "logger"
+X_POSE = np.array([2480.0, -1310.0, -655.0, 1.5, -2.0, 121.0])
+"""A tracker 2.8 m away from the base's origin, turned by 121 deg and tilted by a few degrees."""
+Y_POSE = np.array([35.0, -12.0, 48.0, 0.0, 30.0, -15.0])
+"""The 6-DoF probe 48 mm above the platform frame, mounted at an angle."""
+
+
+def _rotation(pose: np.ndarray) -> Rotation:
+    return Rotation.from_euler("ZYX", pose[..., 5:2:-1], degrees=True)
+
+
+def _compose(X: np.ndarray, B: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """X · B · Y for poses [x, y, z mm, roll, pitch, yaw deg] (R = Rz Ry Rx), written with scipy independently."""
+    RX, RB, RY = _rotation(X), _rotation(B), _rotation(Y)
+    t = RX.apply(RB.apply(Y[:3]) + B[:, :3]) + X[:3]
+    yaw_pitch_roll = (RX * RB * RY).as_euler("ZYX", degrees=True)
+    return np.column_stack([t, yaw_pitch_roll[:, ::-1]])
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot(LOGGER / "robot.toml")
+
+
+def test_exact_frames_are_recovered(robot):
+    poses = random_poses(robot, 30, np.random.default_rng(3))
+    legs = inverse_kinematics(Geometry.nominal(robot), poses)
+    fit = align_frames(_compose(X_POSE, poses, Y_POSE), legs, robot)
+    np.testing.assert_allclose(fit.base_in_instrument, X_POSE, atol=1e-6)
+    np.testing.assert_allclose(fit.target_in_platform, Y_POSE, atol=1e-6)
+    np.testing.assert_allclose(fit.apply(_compose(X_POSE, poses, Y_POSE)), poses, atol=1e-6)
+    assert fit.rms_position_mm < 1e-6
+
+
+def test_too_few_rows_or_no_rotation_are_refused(robot):
+    poses = random_poses(robot, 30, np.random.default_rng(4))
+    legs = inverse_kinematics(Geometry.nominal(robot), poses)
+    with pytest.raises(FrameAlignmentError, match="at least 6"):
+        align_frames(poses[:4], legs[:4], robot)
+    level = poses.copy()
+    level[:, 3:] = 0.0
+    with pytest.raises(FrameAlignmentError, match="turns by at most"):
+        align_frames(level, inverse_kinematics(Geometry.nominal(robot), level), robot)
+
+
+def _logger_in_tracker_frame(folder):
+    """The logger example's files with their poses moved into the tracker's frame (quaternions via scipy)."""
+    shutil.copytree(LOGGER, folder)
+    for name in ("day1.csv", "day2.csv"):
+        path = folder / name
+        with path.open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        pos = np.array([[float(r[f"position_{a}"]) for a in "xyz"] for r in rows])
+        quat = np.array([[float(r[f"orientation_{a}"]) for a in "xyzw"] for r in rows])
+        ypr = Rotation.from_quat(quat).as_euler("ZYX", degrees=True)
+        moved = _compose(X_POSE, np.column_stack([pos, ypr[:, ::-1]]), Y_POSE)
+        q = _rotation(moved).as_quat()
+        for r, p, qq in zip(rows, moved, q, strict=True):
+            r.update({f"position_{a}": f"{v:.5f}" for a, v in zip("xyz", p[:3], strict=True)})
+            r.update({f"orientation_{a}": f"{v:.10f}" for a, v in zip("xyzw", qq, strict=True)})
+        with path.open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+    return folder
+
+
+def test_an_unaligned_tracker_log_is_refused_with_a_hint(tmp_path, robot):
+    folder = _logger_in_tracker_frame(tmp_path / "logger")
+    with pytest.raises(ImportFileError, match=r"outside the robot's workspace.*set \[frame\] align"):
+        import_recording([folder / "day1.csv", folder / "day2.csv"], load_map(folder / "map.toml"), robot=robot,
+                         hold_out=parse_hold_out("file:day2.csv"))
+
+
+def test_aligned_tracker_log_gives_the_same_diagnosis(tmp_path, robot):
+    folder = _logger_in_tracker_frame(tmp_path / "logger")
+    (folder / "map.toml").write_text((folder / "map.toml").read_text() + '\n[frame]\nalign = "shared"\n')
+    result = import_recording([folder / "day1.csv", folder / "day2.csv"], load_map(folder / "map.toml"), robot=robot,
+                              hold_out=parse_hold_out("file:day2.csv"))
+    assert any(note.startswith("[frame] aligned (all files)") for note in result.notes)
+    direct = read_recording(LOGGER / "simulated.csv", robot)
+    moved = np.abs(result.recording.meas[:, :3] - direct.meas[:, :3])
+    assert moved.max() < 0.5, "the alignment absorbs only the frame-like part of the geometric errors"
+    imported, reference = diagnose(result.recording, robot), diagnose(direct, robot)
+    assert imported.effects == reference.effects
+    for key, value in reference.parameters.items():
+        assert abs(imported.parameters[key] - value) <= reference.std_errors[key], key
+    assert imported.after is not None and reference.after is not None
+    assert imported.after.position_mm.rms == pytest.approx(reference.after.position_mm.rms, rel=0.05)
+
+
+def test_align_needs_the_robot_file(tmp_path):
+    folder = _logger_in_tracker_frame(tmp_path / "logger")
+    (folder / "map.toml").write_text((folder / "map.toml").read_text() + '\n[frame]\nalign = "per_file"\n')
+    with pytest.raises(ImportFileError, match="needs the robot file"):
+        import_recording([folder / "day1.csv"], load_map(folder / "map.toml"))
