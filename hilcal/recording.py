@@ -254,7 +254,9 @@ def _validate(rec: Recording, loc: _Locator, robot: Robot | None, min_measure_ro
                         s,
                         col,
                         f"{_show(v)} {unit} is outside the physical range "
-                        f"[{_bound(lo)}, {_bound(hi)}] {unit} ({why})",
+                        f"[{_bound(lo)}, {_bound(hi)}] {unit} ({why})"
+                        + (": a pose in an instrument's own frame? `hilcal import` with [frame] align brings it into "
+                           "the base frame" if group == "meas" else ""),
                     )
 
         if temp is not None:
