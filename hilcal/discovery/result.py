@@ -252,6 +252,8 @@ class Diagnosis:
     """One sentence per finding: what, on which legs, how big, in the machine's own terms."""
     evidence: str = ""
     """The evidence behind the summary (steps, held-out figures, noise, rejections)."""
+    wiring: Any = None
+    """The leg-wiring check (hilcal.wiring.LegWiring): readings in another order or counting the wrong way."""
 
     @property
     def faults(self) -> tuple[NamedEffect, ...]:
@@ -284,6 +286,7 @@ class Diagnosis:
             "end_stops": [s.to_json() for s in self.end_stops],
             "not_converged": list(self.not_converged),
             "compensation": None if self.compensation is None else self.compensation.to_json(),
+            "wiring": None if self.wiring is None else self.wiring.to_json(),
             "explanation": self.explanation,
             "parameters": self.parameters,
             "std_errors": self.std_errors,

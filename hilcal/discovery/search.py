@@ -54,6 +54,7 @@ from hilcal.error_models import pose_difference
 from hilcal.identification import IdentificationResult, residual_function
 from hilcal.recording import Recording
 from hilcal.robot import Robot
+from hilcal.wiring import check_wiring
 
 log = structlog.get_logger(__name__)
 
@@ -62,6 +63,8 @@ MAX_STEPS = 8
 DEFAULT_ALPHA = 0.02
 """Family-wise false-alarm rate of a diagnosis on a recording without missing physics (library and generic
 families share it); step k of the search uses alpha / k."""
+WIRING = "leg_wiring"
+"""The effect name of a set-up fault in the leg readings' order or direction (hilcal.wiring)."""
 ALIAS_GAIN = 0.9
 """Another setting of the same leg and variable (a period, a knot count) with 90 % of the chosen one's held-out
 gain makes the shape's scale ambiguous."""
@@ -262,6 +265,25 @@ def diagnose(
 
 def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: int, cmm_sigma_mm: float | None,
               max_steps: int, generic: bool) -> Diagnosis:
+    wiring = check_wiring(rec.legs_mm, rec.meas, robot)
+    if wiring.problem:
+        log.info("leg_wiring", problem=wiring.sentence())
+        if not wiring.dead:
+            rec = dataclasses.replace(rec, legs_mm=wiring.corrected(rec.legs_mm))
+    diag = _search(rec, robot, alpha=alpha, n_boot=n_boot, seed=seed, cmm_sigma_mm=cmm_sigma_mm,
+                   max_steps=max_steps, generic=generic)
+    if not wiring.problem:
+        return dataclasses.replace(diag, wiring=wiring)
+    said = wiring.sentence([f"leg{i}_mm" for i in range(1, 7)])
+    first = f"Set-up fault (leg wiring): {said[0].upper()}{said[1:]}" + (
+        "; the legs are re-ordered and mirrored as found for everything below." if not wiring.dead else
+        "; the reading that follows no leg cannot be corrected, so everything below is unreliable.")
+    return dataclasses.replace(diag, wiring=wiring, effects=(WIRING, *diag.effects), effect=WIRING,
+                               summary=(first, *diag.summary), explanation=f"{first} {diag.explanation}")
+
+
+def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: int, cmm_sigma_mm: float | None,
+            max_steps: int, generic: bool) -> Diagnosis:
     p = Problem.of(rec, robot)
     library, untestable = library_groups(p.ctx, robot)
     candidates = library + (generic_groups(p.ctx) if generic else [])

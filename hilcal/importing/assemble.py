@@ -34,6 +34,7 @@ from hilcal.importing.table import Table, read_table
 from hilcal.importing.targets import register_targets
 from hilcal.recording import TEMP_RANGE_C, Recording, RecordingError, recording_from_arrays, session_numbers
 from hilcal.robot import Robot
+from hilcal.wiring import check_wiring
 
 KELVIN_OFFSET = 273.15
 _RECORDING_MESSAGE = re.compile(r"imported recording(?: row (\d+))?(?: \(seq \d+\))?(?:, column [^:]+)?: (.*)$", re.S)
@@ -300,6 +301,14 @@ def _notes(rows: Sequence[_FileRows], mapping: ImportMap, robot: Robot | None, h
         if not same:
             notes.append("the map's targets differ from the robot file's [cmm] spheres: `hilcal diagnose` reads "
                          "sphere_fit_rms_mm against the robot file's layout, so put the targets there")
+    if robot is not None:
+        wiring = check_wiring(np.concatenate([r.legs_mm for r in rows]), np.concatenate([r.meas for r in rows]), robot)
+        if wiring.problem:
+            note = f"leg wiring: {wiring.sentence(list(mapping.legs.columns))}"
+            if wiring.reordered and not wiring.dead:
+                order = ", ".join(f'"{mapping.legs.columns[j]}"' for j in wiring.column_of_leg)
+                note += f"; if the robot file's numbering is right, set [legs] columns = [{order}]"
+            notes.append(note)
     if not any(np.any(r.phase == "verify") for r in rows):
         notes.append("no verify rows: accuracy cannot be judged on held-out poses (use --hold-out or [phase])")
     return notes
