@@ -93,7 +93,10 @@ class Recording:
         """The rows of one phase (``measure`` or ``verify``), in their original order."""
         if phase not in PHASES:
             raise ValueError(f"unknown phase {_show(phase)}; expected one of {', '.join(PHASES)}")
-        keep = self.phase == phase
+        return self.rows(self.phase == phase)
+
+    def rows(self, keep: np.ndarray) -> Recording:
+        """The rows where ``keep`` is true (a boolean mask or indices), in their original order."""
         return Recording(
             seq=self.seq[keep],
             phase=self.phase[keep],

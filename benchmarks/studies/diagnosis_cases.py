@@ -63,6 +63,8 @@ class Case:
     noise_model: str = "gaussian"
     bare: bool = False
     """No cmd_* and no temp_c columns (as many real recordings)."""
+    outliers: int = 0
+    """Measure rows given a gross measurement error (a broken beam, a probing error)."""
 
 
 def effects_config(case: Case) -> EffectsConfig:
@@ -94,6 +96,21 @@ def strip(rec: Recording) -> Recording:
     return dataclasses.replace(rec, cmd=np.full_like(rec.cmd, np.nan), extra=extra)
 
 
+OUTLIER_SIZE_MM = (0.1, 0.5)
+"""A gross measurement error: a position jump of this size (the floor is a few µm) in a random direction."""
+
+
+def plant_outliers(rec: Recording, n: int, seed: int) -> tuple[Recording, list[int]]:
+    """`n` measure rows with a gross position error; their seq numbers."""
+    rng = np.random.default_rng([seed, 0x0D7])
+    rows = np.sort(rng.choice(np.flatnonzero(rec.phase == "measure"), size=n, replace=False))
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    meas = rec.meas.copy()
+    meas[rows, :3] += direction * rng.uniform(*OUTLIER_SIZE_MM, size=(n, 1))
+    return dataclasses.replace(rec, meas=meas), [int(rec.seq[r]) for r in rows]
+
+
 def _in_range(diag: Any) -> bool:
     for g in diag.groups:
         if g.physical_range is None:
@@ -114,6 +131,9 @@ def run_case(case: Case, n_boot: int) -> dict[str, Any]:
     rec, truth = simulate_with_truth(robot, config, _WORKER["measure"], _WORKER["verify"])
     if case.bare:
         rec = strip(rec)
+    planted: list[int] = []
+    if case.outliers:
+        rec, planted = plant_outliers(rec, case.outliers, case.seed)
     t0 = time.perf_counter()
     diag = diagnose(rec, robot, alpha=ALPHA, n_boot=n_boot, seed=case.seed)
     elapsed = time.perf_counter() - t0
@@ -134,7 +154,8 @@ def run_case(case: Case, n_boot: int) -> dict[str, Any]:
         "within_claim": WITHIN_NOISE_TEXT in diag.explanation,
         "in_range": _in_range(diag), "n_steps": len(diag.steps),
         "shapes": [{"group": s.group.key, "leg": s.leg + 1, "pinned": s.pinned} for s in diag.shapes],
-        "seconds": elapsed,
+        "seconds": elapsed, "outliers_planted": planted,
+        "outliers_excluded": sorted(int(e["seq"]) for e in diag.excluded),
     }
 
 

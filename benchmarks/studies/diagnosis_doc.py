@@ -161,6 +161,14 @@ def verdict_lines(summary: dict[str, Any]) -> list[str]:
     lines.append(f"- Nulls: false alarms {pooled['k']}/{pooled['n']} = {_pct(pooled['rate'])} (95% CI {_ci(pooled)}; "
                  f"target ≤ {FALSE_ALARM_TARGET:.0%}: {'met' if pooled['rate'] <= FALSE_ALARM_TARGET else '**missed**'}"
                  f"{'' if pooled['ci'][1] <= FALSE_ALARM_TARGET else ', not demonstrated at 95% confidence'}).")
+    o = summary["outliers"]
+    if o["exact"]["n"]:
+        lines.append(f"- Measurement outliers (two gross errors of 0.1-0.5 mm planted among the measure rows of one "
+                     f"library effect): exactly the planted rows left out in {o['exact']['k']}/{o['exact']['n']}, the "
+                     f"effect still named first in {o['named']['k']}/{o['named']['n']} (after/floor median "
+                     f"{_f(o['ratio_median'])}); recordings without planted errors that lost a row to the screen: "
+                     f"{o['false']['k']}/{o['false']['n']} ({o['false_nulls']['k']}/{o['false_nulls']['n']} nulls, "
+                     "Student-t noise among them).")
     lines.append(f"- Named effects with a parameter outside its physical range: {summary['range_violations']} "
                  f"(target 0: {'met' if summary['range_violations'] == 0 else '**missed**'}).")
     lines.append(f"- `diagnose` on 56 rows (32 measure + 24 verify): median {_f(summary['seconds_median'], '.1f')} s, "

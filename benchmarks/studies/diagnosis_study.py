@@ -55,10 +55,11 @@ class StudyPlan:
     n_boot: int
     fault_grid_seeds: int = 5
     fault_done_when_seeds: int = 20
+    outlier_seeds: int = 4
 
 
-FULL_PLAN = StudyPlan(False, (0.5, 1.0, 2.0), 12, 10, (0.5, 1.0), 12, 8, 100, 999, 5, 20)
-QUICK_PLAN = StudyPlan(True, (1.0,), 2, 1, (1.0,), 2, 1, 4, 399, 1, 2)
+FULL_PLAN = StudyPlan(False, (0.5, 1.0, 2.0), 12, 10, (0.5, 1.0), 12, 8, 100, 999, 5, 20, 4)
+QUICK_PLAN = StudyPlan(True, (1.0,), 2, 1, (1.0,), 2, 1, 4, 399, 1, 2, 1)
 COMBOS = (("leg_compliance",), ("thermal_expansion",))
 """Library effects concealed together with each out-of-library effect (several effects at once)."""
 
@@ -74,6 +75,8 @@ def cases(plan: StudyPlan) -> list[Case]:
             for seed in range(plan.unlisted_seeds)]
     out += [Case("combo", (u, *lib), 1.0, 400 + seed) for u in UNLISTED_EFFECT_NAMES for lib in COMBOS
             for seed in range(max(1, plan.unlisted_seeds // 2))]
+    out += [Case("outlier", (e,), 1.0, 500 + seed, outliers=2) for e in EFFECT_NAMES
+            for seed in range(plan.outlier_seeds)]
     out += [Case("null", (), 0.0, NULL_SEED_OFFSET + k, model) for model in NOISE_MODELS
             for k in range(plan.null_seeds)]
     out += [Case("null", (), 0.0, 2 * NULL_SEED_OFFSET + k, NOISE_MODELS[k % 3], bare=True)
@@ -121,6 +124,8 @@ def setup_text(plan: StudyPlan) -> list[str]:
         f"{', '.join(f'{s:g}' for s in plan.single_scales)}, {plan.single_seeds} seeds each; plus "
         f"{plan.bare_seeds} seeds per effect at scale 1 written without cmd_* and temp_c.",
         f"- Pairs: every pair of the five library effects at scale 1, {plan.pair_seeds} seeds each.",
+        f"- Outliers: each library effect at scale 1 with two measure rows given a gross position error of "
+        f"0.1-0.5 mm (`plant_outliers`), {plan.outlier_seeds} seeds each.",
         f"- Out-of-library: every effect of `sim_devices.rig.unlisted_physics` "
         f"({', '.join(UNLISTED_EFFECT_NAMES)}), scales {', '.join(f'{s:g}' for s in plan.unlisted_scales)}, "
         f"{plan.unlisted_seeds} seeds; and each together with "

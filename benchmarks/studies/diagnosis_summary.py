@@ -122,10 +122,25 @@ def nulls(results: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def outliers(results: list[dict[str, Any]]) -> dict[str, Any]:
+    """Planted gross errors excluded exactly (no more, no fewer) with the effect still named first; and recordings
+    without planted errors that lost a row to the screen (false exclusions), nulls among them."""
+    planted = [r for r in results if r["kind"] == "outlier"]
+    exact = [r for r in planted if r["outliers_excluded"] == r["outliers_planted"]]
+    named = [r for r in exact if r["effect"] == r["effects"][0]]
+    clean = [r for r in results if r["kind"] != "outlier"]
+    null_rows = [r for r in clean if r["kind"] == "null"]
+    return {"exact": _rate(len(exact), len(planted)), "named": _rate(len(named), len(planted)),
+            "ratio_median": median([r["after_mm"] / r["floor_mm"] for r in named]),
+            "false": _rate(sum(1 for r in clean if r["outliers_excluded"]), len(clean)),
+            "false_nulls": _rate(sum(1 for r in null_rows if r["outliers_excluded"]), len(null_rows))}
+
+
 def summarize(results: list[dict[str, Any]]) -> dict[str, Any]:
     seconds = [r["seconds"] for r in results]
     return {
         "singles": singles(results), "pairs": pairs(results), "unlisted": unlisted(results), "nulls": nulls(results),
+        "outliers": outliers(results),
         "range_violations": sum(1 for r in results if not r["in_range"]),
         "seconds_median": median(seconds), "seconds_max": maximum(seconds), "n_runs": len(results),
     }

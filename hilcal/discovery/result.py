@@ -254,6 +254,10 @@ class Diagnosis:
     """The evidence behind the summary (steps, held-out figures, noise, rejections)."""
     wiring: Any = None
     """The leg-wiring check (hilcal.wiring.LegWiring): readings in another order or counting the wrong way."""
+    left_out_mm: np.ndarray | None = field(default=None, repr=False)
+    """Per measure row: the length of the final model's left-out residual (mm), for the outlier screen."""
+    excluded: tuple[dict[str, float], ...] = ()
+    """Measure rows left out of the fit as measurement outliers: seq, left-out residual (mm), times the median."""
 
     @property
     def faults(self) -> tuple[NamedEffect, ...]:
@@ -287,6 +291,7 @@ class Diagnosis:
             "not_converged": list(self.not_converged),
             "compensation": None if self.compensation is None else self.compensation.to_json(),
             "wiring": None if self.wiring is None else self.wiring.to_json(),
+            "excluded_rows": list(self.excluded),
             "explanation": self.explanation,
             "parameters": self.parameters,
             "std_errors": self.std_errors,

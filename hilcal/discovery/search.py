@@ -28,7 +28,7 @@ from threadpoolctl import threadpool_limits
 from hilcal.discovery import explain
 from hilcal.discovery.aliases import Alias, alias_why, resolve, separation
 from hilcal.discovery.corrections import compensation_set
-from hilcal.discovery.findings import end_stops, locate, noise_comparison, session_shift
+from hilcal.discovery.findings import END_STOP_TOLERANCE_MM, end_stops, locate, noise_comparison, session_shift
 from hilcal.discovery.fitting import (
     Problem,
     final_fit,
@@ -63,6 +63,10 @@ MAX_STEPS = 8
 DEFAULT_ALPHA = 0.02
 """Family-wise false-alarm rate of a diagnosis on a recording without missing physics (library and generic
 families share it); step k of the search uses alpha / k."""
+OUTLIER_FACTOR = 4.0
+"""A measure row is a measurement outlier when the final model's left-out residual there is beyond 4 times the
+median (for Gaussian noise in six pose components the median is about 2.4 sigma, so this is about 9 sigma)."""
+MAX_OUTLIER_SHARE = 0.05
 WIRING = "leg_wiring"
 """The effect name of a set-up fault in the leg readings' order or direction (hilcal.wiring)."""
 ALIAS_GAIN = 0.9
@@ -270,8 +274,27 @@ def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: 
         log.info("leg_wiring", problem=wiring.sentence())
         if not wiring.dead:
             rec = dataclasses.replace(rec, legs_mm=wiring.corrected(rec.legs_mm))
-    diag = _search(rec, robot, alpha=alpha, n_boot=n_boot, seed=seed, cmm_sigma_mm=cmm_sigma_mm,
-                   max_steps=max_steps, generic=generic)
+    kwargs = {"alpha": alpha, "n_boot": n_boot, "seed": seed, "cmm_sigma_mm": cmm_sigma_mm, "max_steps": max_steps,
+              "generic": generic}
+    diag = _search(rec, robot, **kwargs)
+    outliers = _outliers(diag.left_out_mm)
+    if outliers.size:
+        rows = np.flatnonzero(rec.phase == "measure")[outliers]
+        median = float(np.median(diag.left_out_mm))
+        excluded = tuple({"seq": float(rec.seq[r]), "left_out_mm": float(diag.left_out_mm[k]),
+                          "times_median": float(diag.left_out_mm[k] / median)} for r, k in zip(rows, outliers,
+                                                                                                 strict=True))
+        log.info("outliers_excluded", seq=[e["seq"] for e in excluded])
+        diag = _search(rec.rows(~np.isin(np.arange(rec.n), rows)), robot, stops_from=rec, **kwargs)
+        at_stop = {r: f", leg {s.leg} at its {s.extreme}" for r in rows for s in diag.end_stops
+                   if abs(rec.legs_mm[r, s.leg - 1] - s.reading_mm) <= END_STOP_TOLERANCE_MM}
+        listed = ", ".join(f"seq {e['seq']:.0f} ({e['left_out_mm']:.4f} mm, {e['times_median']:.0f}x"
+                           f"{at_stop.get(r, '')})" for r, e in zip(rows, excluded, strict=True))
+        said = (f"Measurement outlier(s) left out of the fit: {listed}: the left-out residual of the model is more "
+                f"than {OUTLIER_FACTOR:g} times the median of the measure rows ({median:.4f} mm); a bad measurement "
+                "(a broken beam, a probing error, a knock) or a collision: re-measure these poses.")
+        diag = dataclasses.replace(diag, excluded=excluded, summary=(said, *diag.summary),
+                                   explanation=f"{said} {diag.explanation}")
     if not wiring.problem:
         return dataclasses.replace(diag, wiring=wiring)
     said = wiring.sentence([f"leg{i}_mm" for i in range(1, 7)])
@@ -282,8 +305,20 @@ def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: 
                                summary=(first, *diag.summary), explanation=f"{first} {diag.explanation}")
 
 
+def _outliers(left_out_mm: np.ndarray | None) -> np.ndarray:
+    """Measure rows (indices) whose left-out residual is beyond OUTLIER_FACTOR times the median; none when more than
+    MAX_OUTLIER_SHARE of the rows would go (then it is structure or noise, not a few bad measurements)."""
+    if left_out_mm is None or left_out_mm.size < 10:
+        return np.zeros(0, dtype=int)
+    finite = np.isfinite(left_out_mm)
+    median = float(np.median(left_out_mm[finite]))
+    out = np.flatnonzero(finite & (left_out_mm > OUTLIER_FACTOR * median))
+    return out if out.size <= MAX_OUTLIER_SHARE * left_out_mm.size else np.zeros(0, dtype=int)
+
+
 def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: int, cmm_sigma_mm: float | None,
-            max_steps: int, generic: bool) -> Diagnosis:
+            max_steps: int, generic: bool, stops_from: Recording | None = None) -> Diagnosis:
+    """The diagnosis of `rec` as given (end stops are looked for in `stops_from`, the rows before any exclusion)."""
     p = Problem.of(rec, robot)
     library, untestable = library_groups(p.ctx, robot)
     candidates = library + (generic_groups(p.ctx) if generic else [])
@@ -315,6 +350,7 @@ def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: in
                           lambda rows, offsets: predict(p, final, chosen, rows, offsets))
     shapes = shapes_for(robot, p.ctx, final, cov, J_final, chosen, steps, before, alternatives, seed)
     compensation = compensation_set(p.ctx_all, final, chosen)
+    left_out = model_state(p, final, chosen)[0].left_out_norms_mm()
     aliases = _aliases(p, sel, final, seed)
 
     effects: list[str] = []
@@ -328,7 +364,7 @@ def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: in
     std = {n: float(s) for n, s in zip(final.names[N_GEO:], se[N_GEO:], strict=True)}
     named = named_effects(chosen, params, std, p.ctx)
     findings = locate(p.ctx_all, rec, leg_res)
-    stops = end_stops(rec, robot)
+    stops = end_stops(rec if stops_from is None else stops_from, robot)
     answer = explain.Answer(
         effect, effects, chosen, steps, params, std, noise, ratio, shapes, shift, rejected, untestable, aliases,
         before, after, findings, named, stops, tuple(p.not_converged), compensation,
@@ -346,5 +382,5 @@ def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: in
         not_converged=tuple(p.not_converged), compensation=compensation,
         summary=tuple(explain.summary_sentences(named, shapes, aliases, shift, stops, tuple(p.not_converged),
                                                  effects, ratio, noise, compensation)),
-        evidence=explain.evidence(answer),
+        evidence=explain.evidence(answer), left_out_mm=left_out,
     )

@@ -68,6 +68,11 @@ class ModelState:
     def cv_mm(self) -> float:
         return float(np.sqrt(self.press_mm / self.r0.size))
 
+    def left_out_norms_mm(self) -> np.ndarray:
+        """Per pose: the length (mm, rotations at the characteristic length) of its left-out residual."""
+        e_mm = _unwhiten(self.W, self.loo.residuals(self.r0), self.n_poses).reshape(self.n_poses, 6)
+        return np.linalg.norm(e_mm, axis=1)
+
 
 def _unwhiten(W: np.ndarray, e: np.ndarray, n_poses: int) -> np.ndarray:
     """Whitened residuals [..., 6N] back in mm, per pose."""
