@@ -13,7 +13,7 @@ from scipy.stats import t as t_dist
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.regression import orth
 from hilcal.discovery.result import EndStop, Finding, NoiseComparison, SessionShift
-from hilcal.kinematics import Geometry, inverse_jacobian, split_pose
+from hilcal.kinematics import Geometry, inverse_jacobian, inverse_kinematics, leg_vectors, split_pose
 from hilcal.metrics import AccuracySummary
 from hilcal.recording import Recording
 from hilcal.robot import Robot
@@ -136,3 +136,45 @@ def end_stops(rec: Recording, robot: Robot) -> tuple[EndStop, ...]:
             if at >= max(3, END_STOP_FRACTION * n):
                 out.append(EndStop(i + 1, value, extreme, at, n))
     return tuple(out)
+
+
+ZERO_FAULT_FRACTION = 0.01
+"""A leg whose reading is off by more than 1 % of the stroke range at every length has its zero set wrong."""
+
+
+def _frame_part(joints: np.ndarray, moved: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """The small rigid motion (omega x p + t) of a set of joints that best explains their displacement across the
+    legs: the component along each leg's axis is left out of the fit (there a joint slide and a zero are one)."""
+    P = np.eye(3) - axes[:, :, None] * axes[:, None, :]
+    skew = np.zeros((len(joints), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -joints[:, 2], joints[:, 1], -joints[:, 0]
+    skew -= np.swapaxes(skew, 1, 2)
+    A = (P @ np.concatenate([-skew, np.broadcast_to(np.eye(3), skew.shape)], axis=2)).reshape(-1, 6)
+    w_t = np.linalg.lstsq(A, (P @ (moved - joints)[..., None]).reshape(-1), rcond=None)[0]
+    return np.cross(w_t[:3], joints) + w_t[3:]
+
+
+def zero_offsets(robot: Robot, geometry: Geometry) -> np.ndarray:
+    """(6,) how much each leg reads more (mm, + long) than the robot file says at the home pose, once the rigid
+    motions of the base joints and of the platform joints are taken out (a measurement frame placed elsewhere moves
+    all joints rigidly and is no zero error)."""
+    home = robot.home[None]
+    R, t = split_pose(home)
+    _, _, u = leg_vectors(Geometry.nominal(robot), R, t)
+    b = geometry.b - _frame_part(robot.b, geometry.b, u[0])
+    a = geometry.a - _frame_part(robot.a, geometry.a, u[0] @ R[0])
+    return inverse_kinematics(Geometry(a, b, geometry.dl0), home)[0] - inverse_kinematics(Geometry.nominal(robot),
+                                                                                          home)[0]
+
+
+def zero_sentence(robot: Robot, offsets_mm: np.ndarray) -> str | None:
+    """A set-up fault sentence for legs whose zero is off by more than ZERO_FAULT_FRACTION of the stroke range."""
+    limit = ZERO_FAULT_FRACTION * (robot.leg_limits[1] - robot.leg_limits[0])
+    legs = [i for i in range(6) if abs(offsets_mm[i]) > limit]
+    if not legs:
+        return None
+    parts = ", ".join(f"leg {i + 1} {abs(offsets_mm[i]):.3f} mm {'long' if offsets_mm[i] > 0 else 'short'}"
+                      for i in legs)
+    return (f"Set-up fault (leg zero): {parts} at every length (more than {ZERO_FAULT_FRACTION:.0%} of the "
+            f"{robot.leg_limits[1] - robot.leg_limits[0]:g} mm stroke range): check the homing offset or the zero "
+            "in the controller or logger; the calibration's leg offsets correct it.")

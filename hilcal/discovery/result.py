@@ -256,6 +256,8 @@ class Diagnosis:
     """The leg-wiring check (hilcal.wiring.LegWiring): readings in another order or counting the wrong way."""
     left_out_mm: np.ndarray | None = field(default=None, repr=False)
     """Per measure row: the length of the final model's left-out residual (mm), for the outlier screen."""
+    zero_offsets_mm: np.ndarray | None = field(default=None, repr=False)
+    """Per leg: how much it reads long (mm) at home with the calibrated geometry, joint frames removed."""
     excluded: tuple[dict[str, float], ...] = ()
     """Measure rows left out of the fit as measurement outliers: seq, left-out residual (mm), times the median."""
 
@@ -292,6 +294,7 @@ class Diagnosis:
             "compensation": None if self.compensation is None else self.compensation.to_json(),
             "wiring": None if self.wiring is None else self.wiring.to_json(),
             "excluded_rows": list(self.excluded),
+            "leg_zero_offsets_mm": None if self.zero_offsets_mm is None else self.zero_offsets_mm.tolist(),
             "explanation": self.explanation,
             "parameters": self.parameters,
             "std_errors": self.std_errors,

@@ -28,7 +28,15 @@ from threadpoolctl import threadpool_limits
 from hilcal.discovery import explain
 from hilcal.discovery.aliases import Alias, alias_why, resolve, separation
 from hilcal.discovery.corrections import compensation_set
-from hilcal.discovery.findings import END_STOP_TOLERANCE_MM, end_stops, locate, noise_comparison, session_shift
+from hilcal.discovery.findings import (
+    END_STOP_TOLERANCE_MM,
+    end_stops,
+    locate,
+    noise_comparison,
+    session_shift,
+    zero_offsets,
+    zero_sentence,
+)
 from hilcal.discovery.fitting import (
     Problem,
     final_fit,
@@ -351,6 +359,8 @@ def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: in
     shapes = shapes_for(robot, p.ctx, final, cov, J_final, chosen, steps, before, alternatives, seed)
     compensation = compensation_set(p.ctx_all, final, chosen)
     left_out = model_state(p, final, chosen)[0].left_out_norms_mm()
+    offsets = zero_offsets(robot, final.geometry(robot))
+    zero_said = zero_sentence(robot, offsets)
     aliases = _aliases(p, sel, final, seed)
 
     effects: list[str] = []
@@ -380,7 +390,8 @@ def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: in
         final_fit=final, leg_residuals_mm=leg_res, leg_residuals_final_mm=leg_residuals(p, final, chosen),
         context=p.ctx_all, measure=p.measure, named=named, aliases=aliases, end_stops=stops,
         not_converged=tuple(p.not_converged), compensation=compensation,
-        summary=tuple(explain.summary_sentences(named, shapes, aliases, shift, stops, tuple(p.not_converged),
-                                                 effects, ratio, noise, compensation)),
-        evidence=explain.evidence(answer), left_out_mm=left_out,
+        summary=(*([zero_said] if zero_said else []),
+                 *explain.summary_sentences(named, shapes, aliases, shift, stops, tuple(p.not_converged), effects,
+                                            ratio, noise, compensation)),
+        evidence=explain.evidence(answer), left_out_mm=left_out, zero_offsets_mm=offsets,
     )
