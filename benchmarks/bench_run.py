@@ -127,7 +127,7 @@ def pose_breakdown(work: Path) -> tuple[dict[str, list[float]], dict]:
                (SerialCmm, "transact", lambda a: "CMM command round trip"),
                (ControllerCan, "_wait_ack", lambda a: "CAN acknowledgement wait"),
                (ControllerCan, "_wait_in_position", lambda a: "CAN in-position wait"),
-               (ControllerCan, "_send", lambda a: "CAN frame send"),
+               (ControllerCan, "_send_frames", lambda a: "CAN frame send"),
                (cmm_base, "fit_sphere_robust", lambda a: "sphere fit"),
                (cmm_base, "fit_sphere", lambda a: "sphere fit"),
                (Journal, "add_measurement", lambda a: "journal commit")]
@@ -152,8 +152,8 @@ def breakdown_table(totals: dict[str, list[float]], loop: dict) -> str:
              "| --- | ---: | ---: | --- |"]
     moves, moves_ms = row("leg moves (MoveLegs)", "message MoveLegs", "setpoint to IN_POSITION over SLCAN, below")
     ack, _ = row("… CAN acknowledgement wait", "CAN acknowledgement wait", "3 setpoint frames in, CommandAck back")
-    inpos, _ = row("… CAN in-position wait", "CAN in-position wait", "the next Status + Feedback cycle")
-    send, _ = row("… CAN frame send", "CAN frame send", "python-can's SLCAN write + tcdrain on the pty")
+    inpos, _ = row("… CAN in-position wait", "CAN in-position wait", "Status + Feedback after the acknowledgement")
+    send, _ = row("… CAN frame send", "CAN frame send", "the 3 setpoint frames in one SLCAN write on the pty")
     measure, measure_ms = row("pose measurements (Measure)", "message Measure", "6 spheres, below")
     cmm, cmm_ms = row("… CMM command round trips", "CMM command round trip", "GoTo or PtMeas over the pty")
     fits, fits_ms = row("… sphere fits", "sphere fit", "fixed-radius (with outlier test) and free-radius")
@@ -213,13 +213,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         "report* (back home, report with plots, records, simulator stop).\n\n")
     where = ("\n\n## Where a near-instant pose's time goes\n\nOne more near-instant run, in the benchmark's process, "
              "with the engine's messages and the drivers' round trips timed:\n\n")
-    rest = ("\n\nWhat is left is mostly the transports and the simulated devices, not the engine: python-can's SLCAN "
-            "interface reads the port one byte per system call (an acknowledgement and a status cycle are about 120 "
-            "bytes) and drains the port after each of the three setpoint frames; each CMM command crosses the pty "
-            "twice and is parsed and answered by the Python simulator. On a real station these are the devices' own "
-            "latencies (socketcan, a CMM's controller). The sphere fits (scipy's least_squares) and the rest of the "
-            "measurement are the computation a pose needs; the journal commit is one fsynced SQLite transaction per "
-            "pose, so no measurement is lost.\n")
+    rest = ("\n\nWhat is left is the transports and the simulated devices, not the engine: each of the about 49 CMM "
+            "commands of a pose crosses the pty twice and is parsed and answered by the Python simulator (about "
+            "0.2 ms of processor time on both sides, the rest is the two processes waking each other), and each leg "
+            "move is one SLCAN write of its three setpoint frames, answered by the acknowledgement and the new "
+            "status in one piece (the driver reads the port in chunks, `drivers/slcan_bus.py`). On a real station "
+            "these are the devices' own latencies (socketcan, a CMM's controller). The sphere fits (scipy's "
+            "least_squares) and the rest of the measurement are the computation a pose needs; the journal commit is "
+            "one fsynced SQLite transaction per pose, before the next move, so no measurement is lost. On 2 CPUs the "
+            "figures grow with the load of other work (each wake-up waits for a free CPU): see the load average "
+            "above.\n")
     (ROOT / "docs" / "benchmarks_run.md").write_text(header + table + where + parts + rest)
     return 0
 

@@ -120,6 +120,7 @@ class Response:
     items: tuple[Item, ...] = ()
 
 
+_NON_PRINTABLE = re.compile(f"[^\\x{PRINTABLE_MIN:02x}-\\x{PRINTABLE_MAX:02x}]")
 _LINE_RE = re.compile(rf"(?P<tag>{TAG_PATTERN}) (?P<body>.*)", re.DOTALL)
 _TOKEN_RE = re.compile(
     rf"\s*(?:(?P<number>{NUMBER_PATTERN})|(?P<string>{STRING_PATTERN})|(?P<name>{NAME_PATTERN})|(?P<punct>[(),]))"
@@ -202,7 +203,7 @@ def parse_response_line(raw: bytes) -> Response:
     if m is None:
         raise GarbageLine(raw)
     tag, body = m.group("tag"), m.group("body")
-    if any(not PRINTABLE_MIN <= ord(c) <= PRINTABLE_MAX for c in body):
+    if _NON_PRINTABLE.search(body):
         raise MalformedResponse(tag, raw, "non-printable character")
     if body in (Marker.ACK, Marker.DONE):
         return Response(tag, Marker(body))

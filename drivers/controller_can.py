@@ -39,6 +39,7 @@ from drivers.controller_base import (
     PositionMismatch,
     check_leg_limits,
 )
+from drivers.slcan_bus import open_bus
 from hilcal.protocols.checksums import CAN_COUNTER_MODULO
 from hilcal.protocols.controller_states import (
     Command,
@@ -93,7 +94,8 @@ def _fault(value: int) -> FaultCode:
 
 
 class ControllerCan(ControllerInterface):
-    """The servo controller over CAN; ``bus_config`` goes to ``can.Bus(**bus_config)`` (slcan: see below).
+    """The servo controller over CAN; ``bus_config`` goes to ``can.Bus(**bus_config)`` (slcan: see below and
+    ``drivers.slcan_bus``, which reads the adapter's port in chunks).
 
     Example: ``ControllerCan({"interface": "slcan", "channel": "/dev/ttyACM0", "bitrate": 500000}, robot)``. For slcan
     without a ``timeout`` the driver adds SLCAN_READ_TIMEOUT_S.
@@ -135,7 +137,7 @@ class ControllerCan(ControllerInterface):
         if self._bus_config.get("interface") == "slcan":
             self._bus_config.setdefault("timeout", SLCAN_READ_TIMEOUT_S)
         try:
-            self._bus = can.Bus(**self._bus_config)
+            self._bus = open_bus(self._bus_config)
         except (can.CanError, OSError, ValueError) as err:
             raise ControllerError(f"cannot open the CAN interface {bus_config!r}: {err}") from err
         self._closed = False
@@ -174,7 +176,7 @@ class ControllerCan(ControllerInterface):
             with contextlib.suppress(can.CanError, OSError, ValueError):
                 self._bus.shutdown()
             try:
-                self._bus = can.Bus(**self._bus_config)
+                self._bus = open_bus(self._bus_config)
             except (can.CanError, OSError, ValueError) as err:
                 log.warning("can_reopen_failed", error=str(err))
                 self._stop.wait(REOPEN_WAIT_S)
@@ -345,13 +347,22 @@ class ControllerCan(ControllerInterface):
         return counter
 
     def _send(self, name: str, signals: dict[str, int], counter: int) -> None:
-        msg = self._codec.encode(name, signals, counter)
+        self._send_frames([(name, signals)], counter)
+
+    def _send_frames(self, frames: list[tuple[str, dict[str, int]]], counter: int) -> None:
+        """Send frames in order; an interface with ``send_batch`` (``ChunkedSlcanBus``) gets them in one write."""
+        msgs = [self._codec.encode(name, signals, counter) for name, signals in frames]
+        send_batch = getattr(self._bus, "send_batch", None)
         try:
             with self._send_lock:
-                self._bus.send(msg, timeout=self._send_timeout_s)
+                if send_batch is not None and len(msgs) > 1:
+                    send_batch(msgs, timeout=self._send_timeout_s)
+                else:
+                    for msg in msgs:
+                        self._bus.send(msg, timeout=self._send_timeout_s)
         except can.CanError as err:
-            raise ControllerLost(f"cannot send {name}: {err}") from err
-        self.frame_stats.tx_frames += 1
+            raise ControllerLost(f"cannot send {', '.join(name for name, _ in frames)}: {err}") from err
+        self.frame_stats.tx_frames += len(msgs)
 
     def _refuse_locally(self, command: Command) -> None:
         state = self.state
@@ -438,9 +449,8 @@ class ControllerCan(ControllerInterface):
             self._refuse_locally(Command.SETPOINT)
             counter = self._next_counter("Setpoint")
             sent_s = time.monotonic()
-            for k, name in enumerate(SETPOINT_NAMES):
-                self._send(name, {f"Leg{2 * k + 1}Setpoint": um[2 * k], f"Leg{2 * k + 2}Setpoint": um[2 * k + 1]},
-                           counter)
+            self._send_frames([(name, {f"Leg{2 * k + 1}Setpoint": um[2 * k], f"Leg{2 * k + 2}Setpoint": um[2 * k + 1]})
+                               for k, name in enumerate(SETPOINT_NAMES)], counter)
             reason, state, acked_s = self._wait_ack(Command.SETPOINT, counter, sent_s)
         if reason is not RefusalReason.ACCEPTED:
             raise CommandRefused(f"controller refused the setpoint in state {state.name}: {reason.name}",

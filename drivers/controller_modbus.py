@@ -17,14 +17,11 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
-from pymodbus import FramerType
-from pymodbus.client import ModbusSerialClient, ModbusTcpClient
-from pymodbus.exceptions import ModbusException
 
 from hilcal.protocols.controller_states import ControllerState
 from hilcal.protocols.registers import (
@@ -63,6 +60,9 @@ from hilcal.protocols.registers import (
     words_to_bytes,
 )
 from hilcal.robot import Robot
+
+if TYPE_CHECKING:
+    from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
 log = structlog.get_logger(__name__)
 
@@ -279,6 +279,9 @@ class ControllerParams:
             raise ValueError("give either host (Modbus TCP) or serial_port (Modbus RTU)")
         if not 1 <= chunk_registers <= MAX_WRITE_REGISTERS:
             raise ValueError(f"chunk_registers must be 1..{MAX_WRITE_REGISTERS}")
+        from pymodbus import FramerType  # here, not at the top: the records and the engine use only the models
+        from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+
         self.device_id = device_id
         self.chunk_registers = chunk_registers
         self.records: list[UploadRecord] = []
@@ -305,6 +308,8 @@ class ControllerParams:
     # ------------------------------------------------------------------ requests
 
     def _request(self, what: str, call: Callable[..., Any], address: int, **kwargs: Any) -> Any:
+        from pymodbus.exceptions import ModbusException
+
         try:
             response = call(address, device_id=self.device_id, **kwargs)
         except ModbusException as err:

@@ -1,31 +1,36 @@
-"""Commands for the engineer analysing data: identify, diagnose, identifiability, design, simulate."""
+"""Commands for the engineer analysing data: identify, diagnose, identifiability, design, simulate.
+
+numpy and the hilcal models (scipy underneath) are imported inside the commands, so `hilcal --help` starts fast.
+"""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import numpy as np
 import typer
+from rich.markup import escape
 from rich.table import Table
 
-from hilcal.calibration import CalibrationOutcome, calibrate
-from hilcal.identification import IdentificationError
-from hilcal.kinematics import KinematicsError
-from hilcal.recording import RecordingError, read_recording
-from hilcal.robot import Robot
 from procedures.cli.common import (
     EstimatorChoice,
     ModelChoice,
     RobotOption,
     accuracy_table,
+    err,
     fail,
     out,
     robot_or_fail,
     write_simulated_recording,
 )
 from procedures.cli.signoff import AcceptanceOption, CyclesOption
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from hilcal.calibration import CalibrationOutcome
+    from hilcal.robot import Robot
 
 
 def _parameter_table(outcome: CalibrationOutcome) -> Table:
@@ -54,17 +59,31 @@ def identify(
     as_json: Annotated[bool, typer.Option("--json", help="print one JSON object")] = False,
 ) -> None:
     """Identify geometric errors on the `measure` rows; report accuracy on the `verify` rows."""
+    from hilcal.calibration import calibrate
+    from hilcal.identification import IdentificationError
+    from hilcal.kinematics import KinematicsError
+    from hilcal.recording import RecordingError, read_recording
+    from hilcal.wiring import check_wiring
+
     rb = robot_or_fail(robot)
     n_params = 60 if model == ModelChoice.m60 else 42
     chosen_method = method or ("one_step" if model == ModelChoice.m60 else "iterated")
     try:
         rec = read_recording(recording, rb, min_measure_rows=n_params // 6 + 1)
+    except RecordingError as e:
+        fail(str(e))
+    wiring = check_wiring(rec.legs_mm, rec.meas, rb)
+    if wiring.problem:
+        err.print(f"[bold yellow]warning:[/] {escape(wiring.sentence([f'leg{i}_mm' for i in range(1, 7)]))}; "
+                  "the identification uses the legs as given (`hilcal diagnose` undoes it)",
+                  highlight=False, soft_wrap=True)
+    try:
         outcome = calibrate(rec, rb, estimator=estimator.value, model=model.value, formulation=formulation,
                             method=chosen_method)
-    except (RecordingError, IdentificationError, KinematicsError) as e:
+    except (IdentificationError, KinematicsError) as e:
         fail(str(e))
     if as_json:
-        print(json.dumps(outcome.to_json(), indent=2))
+        print(json.dumps({**outcome.to_json(), "wiring": wiring.to_json()}, indent=2))
         return
     out.print(_parameter_table(outcome))
     out.print(accuracy_table(
@@ -89,6 +108,9 @@ def diagnose(
 ) -> None:
     """Find the physics the geometric model leaves out: locate, name, model it, show the fit improve."""
     from hilcal.discovery.search import diagnose as run_diagnosis
+    from hilcal.identification import IdentificationError
+    from hilcal.kinematics import KinematicsError
+    from hilcal.recording import RecordingError, read_recording
 
     if not 0 < alpha < 1:
         fail("--alpha must lie in (0, 1)")
@@ -137,6 +159,7 @@ def diagnose(
 
 def _pose_set(rb: Robot, recording: Path | None, design_name: str, seed: int) -> np.ndarray:
     from hilcal.planning import design
+    from hilcal.recording import RecordingError, read_recording
 
     if recording is not None:
         try:
@@ -187,6 +210,8 @@ def design(
     With --max-minutes: the most informative plan that fits, with its D-efficiency and predicted verify error
     (the paper's pose sets are then left out).
     """
+    import numpy as np
+
     from hilcal.planning import design as dsg
     from procedures.cli.plan_time import design_plan, timing_or_fail
     from procedures.cli.signoff import print_acceptance_design

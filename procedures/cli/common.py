@@ -1,21 +1,24 @@
-"""What every `hilcal` command shares: the consoles, the bad-input exit, option types and the accuracy table."""
+"""What every `hilcal` command shares: the consoles, the bad-input exit, option types and the accuracy table.
+
+Cheap to import (no numpy, no hilcal models): every command module imports it, and `hilcal --help` must start fast.
+"""
 
 from __future__ import annotations
 
 import sys
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, NoReturn
+from typing import TYPE_CHECKING, Annotated, NoReturn
 
-import numpy as np
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.table import Table
 
-from hilcal.metrics import AccuracySummary
-from hilcal.recording import write_recording
-from hilcal.robot import Robot, RobotFileError, load_robot
+if TYPE_CHECKING:
+    from rich.table import Table
+
+    from hilcal.metrics import AccuracySummary
+    from hilcal.robot import Robot
 
 out = Console(width=None if sys.stdout.isatty() else 120)
 err = Console(stderr=True)
@@ -44,6 +47,8 @@ def fail(message: str) -> NoReturn:
 
 def robot_or_fail(path: Path | None) -> Robot:
     """The robot file (None: the paper's Table 1 robot); exit 2 with the loader's message if it is bad."""
+    from hilcal.robot import RobotFileError, load_robot
+
     try:
         return load_robot(path)
     except RobotFileError as e:
@@ -52,6 +57,8 @@ def robot_or_fail(path: Path | None) -> Robot:
 
 def accuracy_table(title: str, columns: list[tuple[str, AccuracySummary | None]]) -> Table:
     """The paper's Table 7 layout: indicators as rows, (position, orientation) per condition as columns."""
+    from rich.table import Table
+
     table = Table(title=title)
     table.add_column("indicator")
     for label, _ in columns:
@@ -71,7 +78,10 @@ def accuracy_table(title: str, columns: list[tuple[str, AccuracySummary | None]]
 
 def write_simulated_recording(rb: Robot, out_path: Path, seed: int, errors: str, noise_mm: float) -> None:
     """32 D-optimal measurement poses and 24 verification poses on the in-process simulated rig, as a CSV."""
+    import numpy as np
+
     from hilcal.planning import design as dsg
+    from hilcal.recording import write_recording
     from procedures.cli.simulated_recording import simulate_recording
     from sim_devices.rig.config import RigConfig, load_errors
 

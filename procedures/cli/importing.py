@@ -1,7 +1,8 @@
 """Commands that bring a machine's own data in: `hilcal import` (CSV files + mapping -> recording) and
 `hilcal robot-from-geometry` (documented geometry -> robot file). Bad input exits 2 and writes nothing.
 
-``hilcal.importing`` is imported inside the commands, so the other commands do not pay for its start-up.
+``hilcal.importing`` (and every hilcal module) is imported inside the commands, so the other commands and
+`hilcal --help` do not pay for its start-up.
 """
 
 from __future__ import annotations
@@ -17,12 +18,11 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from hilcal.recording import write_recording
-from hilcal.robot import POSE_AXES, Robot
 from procedures.cli.common import fail, out, robot_or_fail
 
 if TYPE_CHECKING:
     from hilcal.importing import ImportResult
+    from hilcal.robot import Robot
 
 MIN_REACHABLE_FRACTION = 0.05
 """Below this share of reachable poses in the travel box, pose designs and random poses barely find any."""
@@ -56,6 +56,8 @@ def _range(lo: float, hi: float, digits: int) -> str:
 
 
 def _print_summary(result: ImportResult, robot: Robot | None) -> None:
+    from hilcal.robot import POSE_AXES
+
     sessions = Table(title="sessions (as `hilcal diagnose` sees them)")
     for col in ("session", "files", "rows", "measure", "verify", "time span s"):
         sessions.add_column(col, justify="left" if col == "files" else "right")
@@ -95,6 +97,7 @@ def import_command(
 ) -> None:
     """Write a recording from the CSV files that machines and trackers export, with a summary per session."""
     from hilcal.importing import ImportFileError, import_recording, load_map, parse_hold_out
+    from hilcal.recording import write_recording
 
     try:
         mapping = load_map(map_file)

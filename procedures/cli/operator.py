@@ -8,7 +8,6 @@ from typing import Annotated
 
 import typer
 
-from hilcal.reports.run import links_lines
 from procedures.cli.common import EstimatorChoice, RobotOption, err, fail, out
 from procedures.cli.panel import DEFAULT_PORT, PortOption
 from procedures.cli.records import RecordsOption, open_records
@@ -43,6 +42,7 @@ def run(
 
     Exit codes: 0 complete (and accepted), 2 bad input, 3 stopped (resumable), 4 complete but not accepted.
     """
+    from hilcal.reports.run import links_lines
     from procedures.cli.panel import run_with_panel
     from procedures.cli.plan_time import print_run_estimate, timing_or_fail
     from procedures.cli.sim_station import SIM_TIMING, sim_station

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import tempfile
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from hilcal.calibration import calibrate
-from hilcal.metrics import AccuracySummary
-from hilcal.recording import read_recording
 from procedures.cli.common import accuracy_table, fail, out, robot_or_fail, write_simulated_recording
+
+if TYPE_CHECKING:
+    from hilcal.metrics import AccuracySummary
 
 
 def sim_command(
@@ -36,6 +36,12 @@ def demo(
     out_dir: Annotated[Path | None, typer.Option("--out", help="keep the recording in this folder")] = None,
 ) -> None:
     """Simulate a rig with the paper's Table 2 errors, calibrate with LS and L-infinity, print the table."""
+    from hilcal.calibration import calibrate
+    from hilcal.kinematics import Geometry, forward_kinematics
+    from hilcal.metrics import AccuracySummary
+    from hilcal.recording import read_recording
+    from sim_devices.rig.config import load_errors
+
     rb = robot_or_fail(None)
     folder = out_dir or Path(tempfile.mkdtemp(prefix="hilcal-demo-"))
     folder.mkdir(parents=True, exist_ok=True)
@@ -43,9 +49,6 @@ def demo(
     with out.status("simulating 56 poses on the simulated rig"):
         write_simulated_recording(rb, rec_path, seed, "table2", 0.005)
     rec = read_recording(rec_path, rb)
-    from hilcal.kinematics import Geometry, forward_kinematics
-    from sim_devices.rig.config import load_errors
-
     ver = rec.select("verify")
     truth = Geometry.nominal(rb).perturbed(load_errors("table2", rb).to_vector())
     floor = AccuracySummary.of(ver.meas, forward_kinematics(truth, ver.legs_mm, ver.meas))

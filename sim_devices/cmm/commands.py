@@ -5,10 +5,9 @@ It shares only the declarative protocol tables of ``hilcal.protocols.cmm`` with 
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
-
-import numpy as np
 
 from hilcal.protocols.cmm import (
     ENCODING,
@@ -51,7 +50,9 @@ class CommandRejected(Exception):
 _NAME = re.compile(NAME_PATTERN)
 _NUMBER = re.compile(NUMBER_PATTERN)
 _STRING = re.compile(STRING_PATTERN)
+_SPACES = re.compile(" *")
 _MAX_DEPTH = 6
+_PRINTABLE = bytes(range(PRINTABLE_MIN, PRINTABLE_MAX + 1))
 
 
 class _Scanner:
@@ -66,8 +67,7 @@ class _Scanner:
         return CommandRejected(self.tag, ErrorCode.PROTOCOL_ERROR, f"{what} at column {self.pos + 7}")
 
     def skip_spaces(self) -> None:
-        while self.pos < len(self.text) and self.text[self.pos] == " ":
-            self.pos += 1
+        self.pos = _SPACES.match(self.text, self.pos).end()
 
     def peek(self) -> str:
         return self.text[self.pos] if self.pos < len(self.text) else ""
@@ -106,7 +106,7 @@ class _Scanner:
                 if pattern is _STRING:
                     return m.group()[1:-1]
                 value = float(m.group())
-                if not np.isfinite(value):
+                if not math.isfinite(value):
                     raise CommandRejected(self.tag, ErrorCode.ARGUMENT_OUT_OF_RANGE, "number too large")
                 return value
         return self.call(depth + 1)
@@ -122,7 +122,7 @@ def parse_command_line(raw: bytes) -> ParsedCommand:
     tag = head.decode(ENCODING)
     if raw[5:6] != b" ":
         raise CommandRejected(tag, ErrorCode.NO_SPACE_AT_POS_6)
-    if any(not PRINTABLE_MIN <= b <= PRINTABLE_MAX for b in raw):
+    if raw.translate(None, _PRINTABLE):  # anything left is not printable
         raise CommandRejected(tag, ErrorCode.ILLEGAL_CHARACTER)
     scanner = _Scanner(raw[6:].decode(ENCODING), tag)
     call = scanner.call(0)

@@ -27,6 +27,9 @@ class FaultPlan:
     outlier: bool = False
 
 
+NO_FAULTS = FaultPlan()
+
+
 class FaultInjector:
     """Seeded fault rates plus one-shot injections; thread-safe, changeable while the server runs."""
 
@@ -60,8 +63,10 @@ class FaultInjector:
             self._pending.clear()
 
     def draw(self, command: str) -> FaultPlan:
-        """Decide the faults of the next command."""
+        """Decide the faults of the next command (no rates and nothing pending: none, drawing no random number)."""
         with self._lock:
+            if not any(self._pending.values()) and not any(getattr(self._rates, f.value) for f in Fault):
+                return NO_FAULTS
             chosen = {}
             for fault in Fault:
                 if fault in (Fault.MISS, Fault.OUTLIER) and command != Command.PT_MEAS:

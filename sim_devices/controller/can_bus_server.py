@@ -88,7 +88,7 @@ class CanBusServer:
             next_heartbeat += self.heartbeat_period_s
             if next_heartbeat < now:
                 next_heartbeat = now + self.heartbeat_period_s
-        elif self.faults.heartbeat and self.peer.status_changed():
-            self._send(self._outbox.schedule(self.peer.cycle_frames(), now))
+        elif self.faults.heartbeat:
+            self._send(self._outbox.schedule(self.peer.changed_cycle_frames(), now))
         self._send(self._outbox.due(now))
         return next_heartbeat

@@ -159,14 +159,17 @@ class ControllerCanPeer:
         self._state_sent: ControllerState | None = None
         self._watch_until = 0.0
 
-    def status_changed(self) -> bool:
-        """True when the controller's state differs from the last status sent (or a setpoint came since)."""
-        return self.controller.snapshot().state != self._state_sent
+    def changed_cycle_frames(self) -> list[Frame]:
+        """``cycle_frames()`` when the controller's state differs from the last status sent (or a setpoint came
+        since), else none; one snapshot of the controller for the check and the frames."""
+        return self.cycle_frames(only_if_changed=True)
 
     @property
     def watching(self) -> bool:
-        """A move is (or may be) under way: a setpoint arrived recently or the last status said MOVING."""
-        return self._state_sent == ControllerState.MOVING or time.monotonic() < self._watch_until
+        """A move is (or may be) under way: the last status said MOVING, or a setpoint arrived recently and no
+        status has been sent since (once one says IN_POSITION there is nothing left to watch for)."""
+        return self._state_sent == ControllerState.MOVING or (
+            self._state_sent is None and time.monotonic() < self._watch_until)
 
     def reset_session(self) -> None:
         """A new host session (SLCAN channel opened): forget received counters and partial setpoints."""
@@ -244,10 +247,15 @@ class ControllerCanPeer:
         self._state_sent = None
         return [self._ack(Command.SETPOINT, reason, counter)]
 
-    def cycle_frames(self) -> list[Frame]:
-        """One heartbeat: [FaultEvent if a fault happened,] Status, FeedbackL12, FeedbackL34, FeedbackL56."""
+    def cycle_frames(self, only_if_changed: bool = False) -> list[Frame]:
+        """One heartbeat: [FaultEvent if a fault happened,] Status, FeedbackL12, FeedbackL34, FeedbackL56.
+
+        only_if_changed: none unless the state differs from the last status sent.
+        """
         with self._lock:
             snap = self.controller.snapshot()
+            if only_if_changed and snap.state == self._state_sent:
+                return []
             self._state_sent = snap.state
             frames = []
             if snap.fault_events != self._fault_events_seen:

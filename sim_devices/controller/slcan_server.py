@@ -209,8 +209,8 @@ class SlcanServer:
             next_heartbeat += self.heartbeat_period_s
             if next_heartbeat < now:
                 next_heartbeat = now + self.heartbeat_period_s
-        elif self._open and self.faults.heartbeat and self.peer.status_changed():
-            self._send(self._outbox.schedule(self.peer.cycle_frames(), now))
+        elif self._open and self.faults.heartbeat:
+            self._send(self._outbox.schedule(self.peer.changed_cycle_frames(), now))
         elif not self._open:
             next_heartbeat = now
         self._send(self._outbox.due(now) if self._open else [])

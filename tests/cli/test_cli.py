@@ -80,3 +80,20 @@ def test_identifiability_command_reports_paper_model_rank():
     result = runner.invoke(app, ["identifiability", "--model", "60"])
     assert result.exit_code == 0, result.output
     assert "rank: 36 of 60" in result.stdout
+
+
+def test_identify_warns_of_swapped_legs(recording, tmp_path):
+    lines = recording.read_text().splitlines()
+    header = lines[0].split(",")
+    i, j = header.index("leg1_mm"), header.index("leg4_mm")
+    swapped = []
+    for line in lines[1:]:
+        cells = line.split(",")
+        cells[i], cells[j] = cells[j], cells[i]
+        swapped.append(",".join(cells))
+    path = tmp_path / "swapped.csv"
+    path.write_text("\n".join([lines[0], *swapped]) + "\n")
+    result = runner.invoke(app, ["identify", str(path), "--json"])
+    assert "leg 1 is 'leg4_mm'" in " ".join(result.output.split())
+    clean = runner.invoke(app, ["identify", str(recording), "--json"])
+    assert clean.exit_code == 0 and json.loads(clean.stdout)["wiring"]["problem"] is False
