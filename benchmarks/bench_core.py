@@ -158,6 +158,15 @@ def _cell(value: object) -> str:
     return "" if value is None else str(value)
 
 
+def _included(name: str, title: str) -> str:
+    """The figures of another generated page (its header line names the command and the date), or ''."""
+    path = DOC_PATH.parent / name
+    if not path.exists():
+        return ""
+    _, generated, body = path.read_text().split("\n\n", 2)
+    return f"### {title} (from [{name}]({name}))\n\n{generated}\n\n{body.strip()}"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats")
@@ -177,7 +186,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"Python {platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}. "
         "Times are wall-clock medians (`time.perf_counter`).\n"
     )
-    text = "\n\n".join([head, *sections]) + "\n"
+    sections += [_included("benchmarks_startup.md", "Command-line start-up"),
+                 _included("benchmarks_tests.md", "Test suite")]
+    text = "\n\n".join([head, *[x for x in sections if x]]) + "\n"
     print(text)
     DOC_PATH.parent.mkdir(parents=True, exist_ok=True)
     DOC_PATH.write_text(text)
