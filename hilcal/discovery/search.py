@@ -75,6 +75,8 @@ OUTLIER_FACTOR = 4.0
 """A measure row is a measurement outlier when the final model's left-out residual there is beyond 4 times the
 median (for Gaussian noise in six pose components the median is about 2.4 sigma, so this is about 9 sigma)."""
 MAX_OUTLIER_SHARE = 0.05
+MIN_OUTLIER_ALLOWANCE = 2
+"""At most 5 % of the measure rows (and never fewer than 2) are left out as outliers; more is structure or noise."""
 WIRING = "leg_wiring"
 """The effect name of a set-up fault in the leg readings' order or direction (hilcal.wiring)."""
 ALIAS_GAIN = 0.9
@@ -315,13 +317,14 @@ def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: 
 
 def _outliers(left_out_mm: np.ndarray | None) -> np.ndarray:
     """Measure rows (indices) whose left-out residual is beyond OUTLIER_FACTOR times the median; none when more than
-    MAX_OUTLIER_SHARE of the rows would go (then it is structure or noise, not a few bad measurements)."""
+    the allowance would go (then it is structure or noise, not a few bad measurements)."""
     if left_out_mm is None or left_out_mm.size < 10:
         return np.zeros(0, dtype=int)
     finite = np.isfinite(left_out_mm)
     median = float(np.median(left_out_mm[finite]))
     out = np.flatnonzero(finite & (left_out_mm > OUTLIER_FACTOR * median))
-    return out if out.size <= MAX_OUTLIER_SHARE * left_out_mm.size else np.zeros(0, dtype=int)
+    allowed = max(MIN_OUTLIER_ALLOWANCE, int(MAX_OUTLIER_SHARE * left_out_mm.size))
+    return out if out.size <= allowed else np.zeros(0, dtype=int)
 
 
 def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: int, cmm_sigma_mm: float | None,
