@@ -35,7 +35,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                           text=True, check=False)
     wall = time.perf_counter() - t0
     output = done.stdout + done.stderr
-    summary = re.findall(r"=+ (.*(?:passed|failed).*) in ([\d.]+)s", output)
+    summary = re.findall(r"(\d+ (?:passed|failed).*?) in ([\d.]+)s", output)
     slowest = re.findall(r"^([\d.]+)s (call|setup|teardown)\s+(\S+)$", output, flags=re.M)
     verdict = "met" if wall <= TARGET_S and done.returncode == 0 else "**not met**"
     lines = [f"- Result: {summary[-1][0] if summary else 'no summary'} (exit code {done.returncode}).",

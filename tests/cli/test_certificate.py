@@ -28,6 +28,7 @@ from procedures.cli.app import app
 from procedures.cli.sim_station import SIM_TIMING
 from procedures.plan import make_plan, save_plan
 from tests.cli.browser_support import chromium, require_chromium, text
+from tests.cli.sim_speed import INSTANT_SIM, instant_timing
 
 pytestmark = pytest.mark.timeout(420)
 OPERATOR = "A. Tester"
@@ -44,13 +45,7 @@ calibration_due = 2020-01-31
 max_position_mm = 0.5
 ap_position_mm = 0.5
 rp_position_mm = 0.02
-[timing]
-leg_speed_mm_s = {SIM_TIMING.leg_speed_mm_s}
-leg_accel_mm_s2 = {SIM_TIMING.leg_accel_mm_s2}
-settle_s = {SIM_TIMING.settle_s}
-cmm_s_per_pose = {SIM_TIMING.cmm_s_per_pose}
-move_overhead_s = {SIM_TIMING.move_overhead_s}
-"""
+{instant_timing()}"""
 
 
 def _hilcal(*args: str, records: Path) -> subprocess.CompletedProcess[str]:
@@ -70,8 +65,10 @@ def small_plan(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def accepted(tmp_path_factory: pytest.TempPathFactory, small_plan: Path) -> tuple[Path, subprocess.CompletedProcess]:
     """The brief's command (with 3 cycles and the small plan): no station, so no limits."""
     tmp = tmp_path_factory.mktemp("accepted")
+    (tmp / "sim.toml").write_text(INSTANT_SIM)
     done = _hilcal("run", "--sim", "--yes", "--operator", OPERATOR, "--acceptance", "iso9283", "--cycles", "3",
-                   "--plan", str(small_plan), "--out", str(tmp / "run"), records=tmp / "records.sqlite")
+                   "--plan", str(small_plan), "--sim-config", str(tmp / "sim.toml"), "--out", str(tmp / "run"),
+                   records=tmp / "records.sqlite")
     return tmp, done
 
 
@@ -80,7 +77,8 @@ def failed(tmp_path_factory: pytest.TempPathFactory, small_plan: Path) -> tuple[
     """A servo with 0.02 mm repeatability per leg, 30 cycles, and an RP limit it cannot meet."""
     tmp = tmp_path_factory.mktemp("failed")
     (tmp / "station.toml").write_text(STATION)
-    (tmp / "sim.toml").write_text(f"[controller]\nrepeatability_mm = {REPEATABILITY_MM}\nrepeatability_seed = 7\n")
+    (tmp / "sim.toml").write_text(INSTANT_SIM.replace("[controller]\n", f"[controller]\nrepeatability_mm = "
+                                                      f"{REPEATABILITY_MM}\nrepeatability_seed = 7\n"))
     done = _hilcal("run", "--sim", "--yes", "--operator", OPERATOR, "--acceptance", "iso9283",
                    "--station", str(tmp / "station.toml"), "--sim-config", str(tmp / "sim.toml"),
                    "--plan", str(small_plan), "--out", str(tmp / "run"), records=tmp / "records.sqlite")

@@ -18,6 +18,7 @@ from procedures.cli.app import app
 from procedures.journal import Journal
 from procedures.records import Records
 from procedures.records.sync import stage
+from tests.cli.sim_speed import INSTANT_SIM
 
 runner = CliRunner()
 
@@ -105,8 +106,10 @@ def test_records_sync_writes_what_a_journal_kept(tmp_path):
 @pytest.mark.timeout(420)
 def test_two_simulated_runs_at_once_record_into_one_postgresql_database(pg_url, tmp_path):
     env = {**os.environ, "MPLBACKEND": "Agg", "HILCAL_RECORDS": str(tmp_path / "not-used.sqlite")}
+    (tmp_path / "sim.toml").write_text(INSTANT_SIM)
     procs = [subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", "--sim", "--yes", "--out",
-                               str(tmp_path / name), "--records", pg_url, "--operator", name],
+                               str(tmp_path / name), "--records", pg_url, "--operator", name, "--sim-config",
+                               str(tmp_path / "sim.toml")],
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env) for name in ("A", "B")]
     outputs = [p.communicate(timeout=400)[0].decode() for p in procs]
     assert [p.returncode for p in procs] == [0, 0], outputs

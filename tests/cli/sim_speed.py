@@ -1,0 +1,20 @@
+"""Simulator and station settings for runs whose test does not depend on machine time: the servo moves 1e5 times
+faster than real time, the CMM probes at once and the station waits no settle time (its servo has settled long
+before), so a whole `hilcal run --sim` costs the engine, driver and protocol work only (docs/benchmarks_run.md)."""
+
+from __future__ import annotations
+
+from procedures.cli.sim_station import SIM_TIMING
+
+INSTANT_SIM = """
+[controller]
+time_scale = 100000.0
+[cmm]
+time_scale = 0.0
+"""
+
+
+def instant_timing() -> str:
+    """The simulated station's [timing] section with no settle wait."""
+    values = {**SIM_TIMING.model_dump(), "settle_s": 0.0}
+    return "[timing]\n" + "".join(f"{key} = {value!r}\n" for key, value in values.items())
