@@ -37,11 +37,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     output = done.stdout + done.stderr
     summary = re.findall(r"(\d+ (?:passed|failed).*?) in ([\d.]+)s", output)
     slowest = re.findall(r"^([\d.]+)s (call|setup|teardown)\s+(\S+)$", output, flags=re.M)
+    failed = re.findall(r"^FAILED (\S+)", output, flags=re.M)
     verdict = "met" if wall <= TARGET_S and done.returncode == 0 else "**not met**"
     lines = [f"- Result: {summary[-1][0] if summary else 'no summary'} (exit code {done.returncode}).",
              f"- Wall time of the whole pytest run: {wall:.0f} s (target <= {TARGET_S:.0f} s: {verdict}); "
              f"pytest's own figure {summary[-1][1] if summary else '?'} s. `make test` adds ruff (a few seconds) "
              "and, on a fresh clone, the venv's installation.",
+             *[f"- Failed: `{name}`" for name in failed],
              "", "| seconds | phase | test |", "|---:|---|---|"]
     lines += [f"| {s} | {phase} | `{name}` |" for s, phase, name in slowest]
     body = "\n".join(lines)

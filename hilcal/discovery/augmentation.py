@@ -60,8 +60,8 @@ def augment(robot: Robot, geometry: Geometry, length_mm: float, information: np.
     chosen: list[int] = []
     bands: list[float] = []
     available = np.ones(len(pool), dtype=bool)
+    A = Jc @ C
     for _ in range(MAX_EXTRA_POSES):
-        A = Jc @ C
         S = sigma2 * np.eye(6) + A @ np.swapaxes(Jc, 1, 2)
         Ab = A[:, :, block]
         K = np.linalg.solve(S, Ab)
@@ -71,7 +71,9 @@ def augment(robot: Robot, geometry: Geometry, length_mm: float, information: np.
         best = int(np.argmin(score))
         if not np.isfinite(score[best]):
             break
-        C = C - A[best].T @ np.linalg.solve(S[best], A[best])
+        gain = np.linalg.solve(S[best], A[best])
+        C = C - A[best].T @ gain
+        A = A - (Jc @ A[best].T) @ gain  # = Jc @ C with the new C, at a fraction of the cost
         available[best] = False
         chosen.append(best)
         bands.append(band_of(C[np.ix_(block, block)]))

@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 from hilcal.kinematics import Geometry, gravity_wrench, leg_forces, leg_vectors, split_pose
 from hilcal.recording import SESSION_GAP_S, Recording, session_numbers
@@ -40,6 +39,8 @@ def smooth_temperature(temp_c: np.ndarray, window: int = TEMPERATURE_WINDOW) -> 
     n = len(temp_c)
     if n < 5:
         return np.asarray(temp_c, dtype=float)
+    from scipy.signal import savgol_filter  # scipy.signal costs 0.4 s of start-up; only temperatures need it
+
     return savgol_filter(np.asarray(temp_c, dtype=float), min(window, n - (1 - n % 2)), 1, mode="interp")
 
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import integrate
 from scipy.stats import chi2
 
 from hilcal.discovery.context import detect_sessions
@@ -113,6 +112,8 @@ def _expected_max_rms_squared(robot: Robot) -> float:
 
     def cdf(x: float) -> float:
         return float(np.prod([chi2.cdf(x * m, dof) if dof > 0 else 1.0 for dof, m in dists]))
+
+    from scipy import integrate  # 0.13 s of start-up, for this one integral
 
     value, _ = integrate.quad(lambda x: 1.0 - cdf(x), 0.0, np.inf, limit=200)
     return float(value)
