@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 
 import numpy as np
@@ -11,6 +12,14 @@ import structlog
 
 from hilcal.robot import Robot, default_robot
 from tests.postgres_server import pg_url, postgres  # noqa: F401  (fixtures)
+
+
+def pytest_configure(config) -> None:
+    """Ctrl-C must reach Python: a shell's background job (`make test &`, some CI runners) starts with SIGINT
+    ignored, and Python then installs no KeyboardInterrupt handler, so the pause and abort tests would see no
+    Ctrl-C. Restored in every process (xdist workers included) before any test runs; children inherit it."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(autouse=True)
