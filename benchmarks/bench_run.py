@@ -27,22 +27,12 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-INSTANT = """
-[controller]
-time_scale = 100000.0
-[cmm]
-time_scale = 0.0
-"""
+sys.path.insert(0, str(ROOT))
+
+from tests.cli.sim_speed import INSTANT_SIM as INSTANT  # noqa: E402  (the simulator settings the tests use)
+from tests.cli.sim_speed import instant_timing as instant_station  # noqa: E402
+
 PHASES = ("measure", "verify", "verify_after")
-
-
-def instant_station() -> str:
-    """The near-instant simulator's [timing]: the default simulated station's, with no settle wait (its servo
-    settles 1e5 times faster than the default simulator's, so the station's 50 ms wait would be waiting for nothing)."""
-    from procedures.cli.sim_station import SIM_TIMING
-
-    values = {**SIM_TIMING.model_dump(), "settle_s": 0.0}
-    return "[timing]\n" + "".join(f"{key} = {value!r}\n" for key, value in values.items())
 
 
 def _phase_times(journal: Path) -> dict[str, tuple[float, float, int]]:
