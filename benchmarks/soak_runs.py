@@ -116,10 +116,13 @@ def _run_id(out: Path) -> str | None:
 
 
 def soak_run(condition: Condition, seed: int, work: Path, *, kill_window_s: tuple[float, float] = (4.0, 60.0),
-             timeout_s: float = 900.0) -> SoakRun:
-    """One full run (resumed after each SIGKILL) and its bookkeeping; never raises for a failed run."""
+             timeout_s: float = 900.0, extra_sim_config: str = "") -> SoakRun:
+    """One full run (resumed after each SIGKILL) and its bookkeeping; never raises for a failed run.
+
+    ``extra_sim_config`` is appended to the condition's simulator TOML (the tests make the CMM probe at once where
+    the disturbance is counted in commands, not in seconds)."""
     work.mkdir(parents=True, exist_ok=True)
-    (work / "sim.toml").write_text(condition.sim_config(seed, work))
+    (work / "sim.toml").write_text(condition.sim_config(seed, work) + extra_sim_config)
     out = work / "run"
     rng = random.Random(1000 + seed)
     result = SoakRun(condition.name, seed)

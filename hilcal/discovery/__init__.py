@@ -10,11 +10,16 @@ returning a ``Diagnosis`` (``result``).
 May import the calibration math at the top of ``hilcal`` (robot, recording, kinematics, error models,
 identification, metrics, pose measurement, workspace) and itself; never ``hilcal.planning`` or
 ``hilcal.reports``. A new effect model goes into ``physics`` (see docs/architecture.md).
+
+The names below load on first use (lazy_loader), so importing one light module of the package (``corrections``)
+does not import the statistics of the search.
 """
 
-from hilcal.discovery.context import EffectContext
-from hilcal.discovery.noise import NoiseLevel
-from hilcal.discovery.result import Diagnosis
-from hilcal.discovery.search import diagnose
+import lazy_loader
 
-__all__ = ["Diagnosis", "EffectContext", "NoiseLevel", "diagnose"]
+__getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submod_attrs={
+    "context": ["EffectContext"],
+    "noise": ["NoiseLevel"],
+    "result": ["Diagnosis"],
+    "search": ["diagnose"],
+})

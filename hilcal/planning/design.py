@@ -14,15 +14,18 @@ from __future__ import annotations
 import itertools
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from rich.progress import Progress
-from scipy.stats import qmc
 
 from hilcal.error_models import forward_jacobian
 from hilcal.kinematics import Geometry
 from hilcal.robot import Robot
 from hilcal.workspace import MAX_CONDITION, feasible, random_poses
+
+if TYPE_CHECKING:
+    from scipy.stats import qmc
 
 N_PARAMETERS = 42
 """Columns of the pose-error Jacobian (rigid model: per leg da 3, db 3, dl0 1)."""
@@ -339,6 +342,8 @@ def verification_poses(robot: Robot, n: int, seed: int, *, n_scrambles: int = 16
 
 def _sobol(rng: np.random.Generator) -> qmc.Sobol:
     """A scrambled 6-D Sobol engine seeded by rng (scipy >= 1.15 names the argument rng, older ones seed)."""
+    from scipy.stats import qmc  # scipy.stats costs half a second: only runs that design a plan pay for it
+
     try:
         return qmc.Sobol(d=6, scramble=True, rng=rng)
     except TypeError:

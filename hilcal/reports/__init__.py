@@ -5,13 +5,17 @@ certificate, and the missing-physics diagnosis report with its plots.
 May import everything else in ``hilcal`` (the calibration math, ``planning``, ``discovery``, ``acceptance``); nothing in
 ``hilcal`` imports the reports. A new report section is a function in the module of its report (``run``,
 ``timing`` or ``diagnosis``) that returns its JSON part and its HTML.
+
+The names below load on first use (lazy_loader): a command that writes one report does not pay for the plotting
+and statistics of the others at start-up.
 """
 
-from hilcal.reports.certificate import certificate_html
-from hilcal.reports.diagnosis import write_report
-from hilcal.reports.drift import drift_html, trend_png
-from hilcal.reports.run import RunReport, report_json, write_run_report
-from hilcal.reports.timing import time_html, time_section
+import lazy_loader
 
-__all__ = ["RunReport", "certificate_html", "drift_html", "report_json", "time_html", "time_section", "trend_png",
-           "write_report", "write_run_report"]
+__getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submod_attrs={
+    "certificate": ["certificate_html"],
+    "diagnosis": ["write_report"],
+    "drift": ["drift_html", "trend_png"],
+    "run": ["RunReport", "report_json", "write_run_report"],
+    "timing": ["time_html", "time_section"],
+})

@@ -42,7 +42,6 @@ def run(
 
     Exit codes: 0 complete (and accepted), 2 bad input, 3 stopped (resumable), 4 complete but not accepted.
     """
-    from hilcal.reports.run import links_lines
     from procedures.cli.panel import run_with_panel
     from procedures.cli.plan_time import print_run_estimate, timing_or_fail
     from procedures.cli.sim_station import SIM_TIMING, sim_station
@@ -61,6 +60,8 @@ def run(
 
     def execute(confirm, session=None):
         result = execute_run(request, confirm, session)
+        from hilcal.reports.run import links_lines  # after the run: plotting is not loaded before the machine moves
+
         (out if result.code == 0 else err).print(result.message, highlight=False, markup=False, soft_wrap=True)
         if result.report_path is not None:
             for line in links_lines(json.loads(result.report_path.read_text()).get("links")):

@@ -32,7 +32,9 @@ def _run(args: list[str], tmp: Path) -> subprocess.CompletedProcess[str]:
 
 
 def _config(tmp: Path, **gaps: object) -> Path:
-    lines = ["[controller.can_faults]", f'gap_log = "{tmp / "gaps.jsonl"}"']
+    """Gaps at counts of frames the controller received (commands, not seconds); the CMM probes at once, so the run
+    is not spent waiting for simulated probing."""
+    lines = ["[cmm]", "time_scale = 0.0", "[controller.can_faults]", f'gap_log = "{tmp / "gaps.jsonl"}"']
     lines += [f"{key} = {json.dumps(value)}" for key, value in gaps.items()]
     path = tmp / "sim.toml"
     path.write_text("\n".join(lines) + "\n")

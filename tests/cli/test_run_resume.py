@@ -23,7 +23,13 @@ from hilcal.robot import default_robot
 SIM_CONFIG = """
 [controller.modbus_faults]
 response_delay_s = 0.03
+[cmm]
+time_scale = 0.0
 """
+"""Modbus answers slowly enough for kills to land inside the upload; the CMM probes at once, so a pose takes about
+0.1 s of engine, driver and protocol work (the kill points are in measurements, not in seconds)."""
+POSE_S = 0.1
+"""About one pose's time at these settings: a kill lands up to 1.5 poses after its measurement count is reached."""
 
 
 def _journal_state(path: Path) -> tuple[int, str | None, str | None]:
@@ -67,9 +73,9 @@ def test_sigkill_at_seeded_points_then_resume(tmp_path):
     # Kill points: after k measurements plus a random delay, spread over all three phases, and inside the upload.
     kill_after = sorted(rng.choice(np.arange(1, total), size=18, replace=False).tolist())
     plan = [("startup", 0, rng.uniform(0.5, 2.0))]
-    plan += [("measurements", k, rng.uniform(0.0, 0.4)) for k in kill_after if k < pre]
+    plan += [("measurements", k, rng.uniform(0.0, 1.5 * POSE_S)) for k in kill_after if k < pre]
     plan += [("upload", pre, rng.uniform(0.0, 0.05)), ("upload", pre, rng.uniform(0.05, 0.3))]
-    plan += [("measurements", k, rng.uniform(0.0, 0.4)) for k in kill_after if k >= pre]
+    plan += [("measurements", k, rng.uniform(0.0, 1.5 * POSE_S)) for k in kill_after if k >= pre]
     assert len(plan) >= 21
 
     robot = default_robot()
