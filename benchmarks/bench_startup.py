@@ -22,6 +22,8 @@ from _docs import write_doc  # noqa: E402
 
 TARGET_S = 0.3
 """Issue 22: every `--help` starts in at most 0.3 s."""
+RUN_IMPORTS = "imports of hilcal run before its devices open (python -c)"
+"""Paid by every start and resume of a run; plotting and statistics are loaded after the measurements."""
 
 
 def hilcal_entry() -> Path:
@@ -52,13 +54,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     commands = {"python -c pass (floor)": [sys.executable, "-c", "pass"],
                 "hilcal --help": [hilcal, "--help"],
                 "hilcal history --help": [hilcal, "history", "--help"],
-                "hilcal identify --help": [hilcal, "identify", "--help"]}
+                "hilcal identify --help": [hilcal, "identify", "--help"],
+                RUN_IMPORTS: [sys.executable, "-c", "import procedures.cli.operator, procedures.cli.sim_station, "
+                              "procedures.runner"]}
     load_before = os.getloadavg()[0]
     rows = ["| command | runs | median (s) | max (s) | within 0.3 s |", "| --- | ---: | ---: | ---: | --- |"]
     for name, command in commands.items():
         times = time_command(command, repeats)
         median, worst = statistics.median(times), max(times)
-        within = "" if name.startswith("python") else ("yes" if median <= TARGET_S else "**no**")
+        within = "" if name.startswith(("python", RUN_IMPORTS)) else ("yes" if median <= TARGET_S else "**no**")
         rows.append(f"| `{name}` | {repeats} | {median:.3f} | {worst:.3f} | {within} |")
         print(f"{name}: median {median:.3f} s, max {worst:.3f} s", file=sys.stderr)
     body = ("\n".join(rows) + "\n\n"
@@ -66,7 +70,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             "numpy, scipy, matplotlib, panel server, database or device protocol: each command imports what it "
             "uses (tests/cli/test_startup.py guards this by import tracing). What remains: the interpreter, typer "
             "with rich (the help's layout) and, for a command's help, pydantic (typer validates the app's options "
-            "with it). `python -X importtime -m procedures.cli history --help` lists the imports one by one.\n")
+            "with it). `python -X importtime -m procedures.cli history --help` lists the imports one by one. "
+            "A run (and each resume) imports the engine, the drivers, the journal and the records before it opens "
+            "the devices; matplotlib and scipy.stats come after the measurements, for the report (the same test "
+            "guards this).\n")
     detail = (f"Each command runs {repeats} times as a fresh process of the venv's `hilcal` script (after one "
               "unmeasured run); wall time with `time.perf_counter`.")
     path = write_doc("benchmarks_startup.md", "Command line: start-up time", "benchmarks/bench_startup.py", detail,

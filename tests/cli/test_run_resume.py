@@ -96,7 +96,7 @@ def test_sigkill_at_seeded_points_then_resume(tmp_path):
                 proc.send_signal(signal.SIGKILL)
                 kills += 1
                 break
-            time.sleep(0.005)
+            time.sleep(0.02)
         proc.wait(30)
         time.sleep(0.3)
         n, _, rid = _journal_state(journal)
