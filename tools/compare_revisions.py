@@ -23,7 +23,7 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 VOLATILE_KEYS = {"run_id", "endpoint", "started_at", "finished_at", "at", "actual_s", "actual_over_estimated",
-                 "out_dir", "report_path", "records"}
+                 "out_dir", "report_path", "records", "issued_at", "number", "git_modified"}
 """Fields that differ between two runs of the same revision (wall-clock times, ids, ports, paths)."""
 
 

@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import numpy as np
 from scipy.linalg import block_diag
-from scipy.stats import t as t_dist
+from scipy.special import stdtr
 
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.regression import orth
@@ -109,7 +109,7 @@ def session_shift(ctx: EffectContext, measure: np.ndarray, leg_res: np.ndarray, 
     res = leg_res[later]
     mean = res.mean(axis=0)
     se = res.std(axis=0, ddof=1) / np.sqrt(n)
-    p = _holm(2 * t_dist.sf(np.abs(mean) / np.maximum(se, 1e-300), n - 1))
+    p = _holm(2 * stdtr(n - 1, -np.abs(mean) / np.maximum(se, 1e-300)))
     legs = tuple(int(i) + 1 for i in np.flatnonzero(p < SHIFT_ALPHA))
     corrected = None
     if legs:

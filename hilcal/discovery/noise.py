@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtr
 
 from hilcal.discovery.context import detect_sessions
 from hilcal.error_models import pose_difference
@@ -111,7 +111,7 @@ def _expected_max_rms_squared(robot: Robot) -> float:
         dists.append((dof, m))
 
     def cdf(x: float) -> float:
-        return float(np.prod([chi2.cdf(x * m, dof) if dof > 0 else 1.0 for dof, m in dists]))
+        return float(np.prod([chdtr(dof, x * m) if dof > 0 else 1.0 for dof, m in dists]))
 
     from scipy import integrate  # 0.13 s of start-up, for this one integral
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import f as f_dist
+from scipy.special import fdtrc
 
 from hilcal.discovery.naming import describe, unit_of
 from hilcal.discovery.regression import LeaveOneOut, leverage_adjusted, orth
@@ -157,7 +157,7 @@ def _min_p_adjust(p_obs: np.ndarray, f_star: np.ndarray, ranks: np.ndarray, dof:
         min_star = np.ones(f_star.shape[1])
         for q in np.unique(ranks[rows]):
             cls = rows & (ranks == q)
-            min_star = np.minimum(min_star, f_dist.sf(np.max(f_star[cls], axis=0), q, dof - q))
+            min_star = np.minimum(min_star, fdtrc(q, dof - q, np.max(f_star[cls], axis=0)))
         counts = np.sum(min_star[None, :] <= p_obs[rows, None], axis=1)
         out[rows] = (1 + counts) / (min_star.size + 1)
     return out
@@ -237,7 +237,7 @@ def assess(state: ModelState, groups: list[TermGroup], columns: list[np.ndarray]
     offsets = np.concatenate([[0], np.cumsum(ranks)[:-1]])
     explained = np.add.reduceat((Q_all.T @ r0) ** 2, offsets)
     f_obs = (explained / ranks) / ((rss0 - explained) / (dof - ranks))
-    p_obs = f_dist.sf(f_obs, ranks, dof - ranks)
+    p_obs = fdtrc(ranks, dof - ranks, f_obs)
 
     rng = np.random.default_rng(seed)
     signs = rng.choice([-1.0, 1.0], size=(state.n_poses, n_boot))

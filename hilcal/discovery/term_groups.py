@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import norm
+from scipy.special import ndtr
 
 from hilcal.discovery.context import EffectContext
 
@@ -77,7 +77,7 @@ class PhysicalRange:
         lo, hi = self.typical_bounds()
 
         def mass(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-            return np.clip(norm.cdf((b - values) / se) - norm.cdf((a - values) / se), 0.0, 1.0)
+            return np.clip(ndtr((b - values) / se) - ndtr((a - values) / se), 0.0, 1.0)
 
         w_typ = 1.0 - PRIOR_FAULT_WEIGHT if self.typical_low is not None else 1.0
         density = w_typ * mass(lo, hi) / np.maximum(hi - lo, 1e-300)
