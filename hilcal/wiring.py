@@ -69,8 +69,11 @@ class LegWiring:
             parts.append(f"the leg readings are not in the robot file's order: {pairs}; check the logger's leg "
                          "order, the cabling, or the robot file's leg numbering")
         if self.reversed_legs:
+            mirrored = ", ".join(f"leg {leg} = {self.mirror_mm[leg - 1]:.3f} mm - reading" for leg in self.reversed_legs)
             parts.append(f"leg(s) {', '.join(map(str, self.reversed_legs))} read(s) less as the leg extends: the "
-                         "transducer counts the wrong way (direction sign in the controller or logger)")
+                         "transducer counts the wrong way (direction sign in the controller or logger); read here as "
+                         f"{mirrored} (fitted to the nominal geometry, so that leg's zero is not judged: fix the sign "
+                         "and run again for it)")
         if self.dead:
             parts.append(f"{', '.join(name(j) for j in self.dead)} follow(s) no leg (R² below {MIN_R2:g} against "
                          "every leg): a dead transducer, or a column that is not a leg length")
@@ -90,6 +93,8 @@ class LegWiring:
             "slope": self.slope.tolist(), "misfit_mm": self.misfit_mm.tolist(),
             "misfit_as_given_mm": self.misfit_as_given_mm.tolist(), "reversed_legs": list(self.reversed_legs),
             "dead_columns": [j + 1 for j in self.dead], "sentence": self.sentence() if self.problem else "",
+            "mirror_mm": [float(m) if i + 1 in self.reversed_legs else None for i, m in enumerate(self.mirror_mm)],
+            "rule": "leg i's length is reading column_of_leg[i]; for a reversed leg, mirror_mm[i] - that reading",
         }
 
 

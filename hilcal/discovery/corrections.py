@@ -110,6 +110,9 @@ class CompensationSet:
 
     geometry_mm: dict[str, float]
     terms: tuple[Term, ...]
+    readings: dict[str, Any] | None = None
+    """How the reported lengths come from the logged readings when the legs were re-ordered or mirrored (the
+    diagnosis's wiring check), else None: the readings are the reported lengths."""
 
     def leg_corrections(self, ctx: EffectContext) -> np.ndarray:
         """[N, 6] mm to add to the reported leg lengths of the rows of ctx."""
@@ -119,8 +122,14 @@ class CompensationSet:
         return out
 
     def to_json(self) -> dict[str, Any]:
-        return {"geometry_mm": self.geometry_mm, "terms": [t.to_json() for t in self.terms],
-                "rule": "geometric leg length = reported + sum of terms (mm), with the geometry above"}
+        rule = "geometric leg length = reported + sum of terms (mm), with the geometry above"
+        if self.readings is not None:
+            rule += "; reported = the logged readings as `readings` re-orders and mirrors them"
+        out: dict[str, Any] = {"geometry_mm": self.geometry_mm, "terms": [t.to_json() for t in self.terms],
+                               "rule": rule}
+        if self.readings is not None:
+            out["readings"] = self.readings
+        return out
 
 
 def _table(values: Callable[[np.ndarray], np.ndarray], lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:

@@ -311,8 +311,14 @@ def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: 
     first = f"Set-up fault (leg wiring): {said[0].upper()}{said[1:]}" + (
         "; the legs are re-ordered and mirrored as found for everything below." if not wiring.dead else
         "; the reading that follows no leg cannot be corrected, so everything below is unreliable.")
+    compensation = diag.compensation
+    if compensation is not None and not wiring.dead:
+        wired = wiring.to_json()
+        compensation = dataclasses.replace(compensation, readings={
+            k: wired[k] for k in ("column_of_leg", "reversed_legs", "mirror_mm", "rule")})
     return dataclasses.replace(diag, wiring=wiring, effects=(WIRING, *diag.effects), effect=WIRING,
-                               summary=(first, *diag.summary), explanation=f"{first} {diag.explanation}")
+                               summary=(first, *diag.summary), explanation=f"{first} {diag.explanation}",
+                               compensation=compensation)
 
 
 def _outliers(left_out_mm: np.ndarray | None) -> np.ndarray:

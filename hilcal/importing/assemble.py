@@ -34,7 +34,7 @@ from hilcal.importing.table import Table, read_table
 from hilcal.importing.targets import register_targets
 from hilcal.recording import TEMP_RANGE_C, Recording, RecordingError, recording_from_arrays, session_numbers
 from hilcal.robot import Robot
-from hilcal.wiring import check_wiring
+from hilcal.wiring import LegWiring, check_wiring
 
 KELVIN_OFFSET = 273.15
 _RECORDING_MESSAGE = re.compile(r"imported recording(?: row (\d+))?(?: \(seq \d+\))?(?:, column [^:]+)?: (.*)$", re.S)
@@ -308,10 +308,27 @@ def _notes(rows: Sequence[_FileRows], mapping: ImportMap, robot: Robot | None, h
             if wiring.reordered and not wiring.dead:
                 order = ", ".join(f'"{mapping.legs.columns[j]}"' for j in wiring.column_of_leg)
                 note += f"; if the robot file's numbering is right, set [legs] columns = [{order}]"
+            if wiring.reversed_legs and not wiring.dead:
+                note += _reversed_fix(mapping, wiring)
             notes.append(note)
     if not any(np.any(r.phase == "verify") for r in rows):
         notes.append("no verify rows: accuracy cannot be judged on held-out poses (use --hold-out or [phase])")
     return notes
+
+
+def _reversed_fix(mapping: ImportMap, wiring: LegWiring) -> str:
+    """The [legs] values that read the reversed legs the right way: length = mirror - (zero + k r) = (mirror - zero)
+    - k r, so the sign of mm_per_unit flips and zero_mm becomes mirror - zero; mm and m readings cannot flip."""
+    if mapping.legs.unit not in ("count", "rev"):
+        return ("; the mapping reads mm and m as they are, so reverse the direction sign in the logger or "
+                "controller")
+    scale, zero = mapping.legs.scale_mm(), mapping.legs.zero()
+    for leg in wiring.reversed_legs:
+        column = int(wiring.column_of_leg[leg - 1])
+        scale[column], zero[column] = -scale[column], wiring.mirror_mm[leg - 1] - zero[column]
+    return (f"; to read them the right way set [legs] mm_per_unit = [{', '.join(f'{v:g}' for v in scale)}] and "
+            f"zero_mm = [{', '.join(f'{v:.3f}' for v in zero)}] (the new zeros are fitted to the nominal geometry: "
+            "check them against the machine's home)")
 
 
 def import_recording(

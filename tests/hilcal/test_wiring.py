@@ -83,3 +83,33 @@ def test_import_suggests_the_column_order(tmp_path):
                               hold_out=parse_hold_out("file:day2.csv"))
     note = next(n for n in result.notes if n.startswith("leg wiring"))
     assert 'set [legs] columns = ["leg_length_1", "leg_length_2", "leg_length_3"' in note
+
+
+def test_import_says_how_to_read_a_reversed_leg_and_the_fix_reads_it(tmp_path):
+    """Leg 4 mapped with the wrong sign: the note gives mm_per_unit and zero_mm that read it the right way, and an
+    import with them gives leg 4 as the correct map does (slope exact; the zero within a tenth of a mm, since it is
+    fitted to the nominal geometry)."""
+    folder = tmp_path / "logger"
+    shutil.copytree(IMPORT_EXAMPLES / "logger", folder)
+    robot = load_robot(folder / "robot.toml")
+    files = [folder / "day1.csv", folder / "day2.csv"]
+    right = import_recording(files, load_map(folder / "map.toml"), robot=robot).recording.legs_mm
+    text = (folder / "map.toml").read_text()
+    wrong = text.replace("mm_per_unit = [5.0, 5.0, 5.0, 5.0, 5.0, 5.0]", "mm_per_unit = [5.0, 5.0, 5.0, -5.0, 5.0, 5.0]")
+    wrong = wrong.replace("zero_mm = [812.0, 812.0, 812.0, 812.0, 812.0, 812.0]",
+                          "zero_mm = [812.0, 812.0, 812.0, 969.0, 812.0, 812.0]")  # within the leg limits
+    assert wrong.count("-5.0") == 1 and "969.0" in wrong
+    (folder / "map.toml").write_text(wrong)
+    note = next(n for n in import_recording(files, load_map(folder / "map.toml"), robot=robot).notes
+                if n.startswith("leg wiring"))
+    assert "leg(s) 4 read(s) less" in note
+    suggested = note.split("to read them the right way set [legs] ", 1)[1].split(" (the new zeros", 1)[0]
+    scale, zero = suggested.split(" and ")
+    assert scale == "mm_per_unit = [5, 5, 5, 5, 5, 5]"
+    (folder / "map.toml").write_text(
+        wrong.replace("mm_per_unit = [5.0, 5.0, 5.0, -5.0, 5.0, 5.0]", scale).replace(
+            "zero_mm = [812.0, 812.0, 812.0, 969.0, 812.0, 812.0]", zero))
+    fixed = import_recording(files, load_map(folder / "map.toml"), robot=robot).recording.legs_mm
+    offset = fixed[:, 3] - right[:, 3]
+    assert np.ptp(offset) < 1e-6 and abs(offset[0]) < 0.1
+    np.testing.assert_allclose(np.delete(fixed, 3, axis=1), np.delete(right, 3, axis=1), atol=1e-9)

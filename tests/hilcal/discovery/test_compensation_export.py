@@ -127,3 +127,27 @@ def test_a_shape_that_cancels_against_the_geometry_is_held_to_the_data():
     held_sizes = np.array([np.max(np.abs(t.correction_mm)) for t in compensation_set(p.ctx_all, held, [group]).terms])
     assert np.max(raw_sizes / recorded) > 1000  # the pathology is real in the unpenalized fit
     assert np.all(held_sizes <= SHAPE_FACTOR * recorded)
+
+
+def test_with_re_ordered_and_mirrored_readings_the_set_says_how_to_read_them(tmp_path):
+    """Legs 2 and 3 logged in each other's column and leg 5 counting down: compensation.json says how the logged
+    readings become the reported lengths (this test applies that rule itself), and the set then round-trips."""
+    import dataclasses
+
+    robot = load_robot(EXAMPLE / "robot.toml")
+    rec = read_recording(EXAMPLE / "recording.csv", robot)
+    logged = rec.legs_mm[:, [0, 2, 1, 3, 4, 5]].copy()
+    logged[:, 4] = 500.0 - logged[:, 4]
+    diag = diagnose(dataclasses.replace(rec, legs_mm=logged), robot, n_boot=199)
+    write_report(diag, tmp_path)
+    readings = json.loads((tmp_path / "compensation.json").read_text())["readings"]
+    assert readings["column_of_leg"] == [1, 3, 2, 4, 5, 6] and readings["reversed_legs"] == [5]
+    reported = logged[:, np.array(readings["column_of_leg"]) - 1]
+    for leg in readings["reversed_legs"]:
+        reported[:, leg - 1] = readings["mirror_mm"][leg - 1] - reported[:, leg - 1]
+    assert [m is None for m in readings["mirror_mm"]] == [True, True, True, True, False, True]
+    fixed = dataclasses.replace(rec, legs_mm=reported)
+    model = predict(Problem.of(fixed, robot), diag.final_fit, list(diag.groups), np.ones(rec.n, dtype=bool))
+    gap = np.abs(pose_difference(model, _apply(tmp_path, robot, fixed), robot.characteristic_length_mm))
+    assert np.max(gap) < TOLERANCE_MM, np.max(gap)
+    assert "leg 5 = " in diag.summary[0] and "mm - reading" in diag.summary[0]
