@@ -69,7 +69,8 @@ class LegWiring:
             parts.append(f"the leg readings are not in the robot file's order: {pairs}; check the logger's leg "
                          "order, the cabling, or the robot file's leg numbering")
         if self.reversed_legs:
-            mirrored = ", ".join(f"leg {leg} = {self.mirror_mm[leg - 1]:.3f} mm - reading" for leg in self.reversed_legs)
+            mirrored = ", ".join(f"leg {leg} = {self.mirror_mm[leg - 1]:.3f} mm - reading"
+                                 for leg in self.reversed_legs)
             parts.append(f"leg(s) {', '.join(map(str, self.reversed_legs))} read(s) less as the leg extends: the "
                          "transducer counts the wrong way (direction sign in the controller or logger); read here as "
                          f"{mirrored} (fitted to the nominal geometry, so that leg's zero is not judged: fix the sign "

@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from hilcal.discovery.naming import describe, unit_of
 from hilcal.discovery.noise import NoiseLevel
 from hilcal.discovery.physics import CANDIDATES_BY_NAME, ZERO_SHIFT, ZERO_SHIFT_TITLE
@@ -38,6 +40,29 @@ def _named_sentence(n: NamedEffect) -> str:
     return f"{kind} ({n.effect}, {n.title}): {n.sentence}"
 
 
+def _drift_words(terms: list[Any]) -> str:
+    """For a drift in time: how much each leg's length moved over its session, signed, and what a common sign means
+    (a correction that grows means the leg grew while its reading did not)."""
+    if not terms or any(t.variable != "session_time_s" for t in terms):
+        return ""
+    moved = []
+    for t in terms:
+        start, end = t.recorded_range
+        if t.coefficient_mm is not None:
+            moved.append(t.coefficient_mm * (end - start))
+        else:
+            moved.append(float(np.interp(end, t.grid, t.correction_mm) - np.interp(start, t.grid, t.correction_mm)))
+    hours = (max(t.recorded_range[1] for t in terms) - min(t.recorded_range[0] for t in terms)) / 3600.0
+    listed = ", ".join(f"leg {t.leg + 1} {m * 1000:+.1f} µm" for t, m in zip(terms, moved, strict=True))
+    text = f"; over {hours:.2g} h of a session the legs' lengths moved against their readings by {listed}"
+    if len(terms) >= 3 and (all(m > 0 for m in moved) or all(m < 0 for m in moved)):
+        grew = moved[0] > 0
+        text += (f": every leg {'grew' if grew else 'shrank'} while its reading did not, as legs "
+                 f"{'warming up' if grew else 'cooling down'} do (a temperature column in the recording would let "
+                 "thermal expansion be tested)")
+    return text
+
+
 def _shape_sentences(shapes: list[Shape], compensation: Any) -> list[str]:
     """One sentence per generic group: where, how big over the recorded range, whether it is pinned down."""
     out = []
@@ -53,6 +78,7 @@ def _shape_sentences(shapes: list[Shape], compensation: Any) -> list[str]:
                                             f"{term.recorded_range[1]:.4g} {term.variable}"
             parts.append(f"leg {s.leg + 1} ±{_um(size)}{where}")
         text = f"Unexplained (no library effect describes it): {first.group.sentence} ({'; '.join(parts)})"
+        text += _drift_words([sizes[(key, s.leg)] for s in group_shapes if (key, s.leg) in sizes])
         if first.verify_before_mm is not None and first.verify_after_mm is not None:
             text += (f"; modelling it takes the held-out verify RMS from {first.verify_before_mm:.4f} to "
                      f"{first.verify_after_mm:.4f} mm")
@@ -81,6 +107,10 @@ def _alias_sentence(a: Any) -> str:
             payload = "" if a.payload_kg is None else f" with a payload of {a.payload_kg:.3g} kg"
             text += f"; {len(a.separating_poses)} extra pose(s){payload} would bring that{after}"
         return text + "."
+    if IMPOSSIBLE in a.other_grades:
+        return (f"Not an alternative to {a.chosen}: {a.other} ({a.other_title}) could mimic it on these poses "
+                f"({a.gain_ratio:.0%} as much of the held-out error), but only with impossible values ({values}); "
+                "no pose is needed to rule it out.")
     text = (f"Near-alias of {a.chosen}: {a.other} ({a.other_title}) explains {a.gain_ratio:.0%} as much of the "
             f"held-out error "
             f"with {grade} ({values}); {a.why}")

@@ -361,7 +361,7 @@ def import_recording(
         rec = recording_from_arrays(
             seq=np.arange(1, n + 1),
             phase=np.concatenate([r.phase for r in rows]),
-            time_s=time_s,
+            time_s=np.round(time_s, 6),  # clocks tick in µs at best: 61.002, not 61.001999855041504
             cmd=None if mapping.command is None else np.concatenate([r.cmd for r in rows]),
             legs_mm=np.concatenate([r.legs_mm for r in rows]),
             meas=np.concatenate([r.meas for r in rows]),

@@ -150,7 +150,9 @@ table{{border-collapse:collapse;margin:.5em 0}}td,th{{border:1px solid #ccc;padd
 <h2>Noise yardstick</h2>{noise}{_img(out_dir / "noise.png")}
 <h2>Unexplained terms</h2>{''.join(shape_html) or '<p>none</p>'}
 <h2>Library candidates (first step)</h2>{candidates}
-<h2>Where the mismatch lives</h2><ul>{findings}</ul>{_img(out_dir / "legs.png")}{_img(out_dir / "time.png")}
+<h2>Where the mismatch lives</h2><p>Each leg's residual under the geometry alone (before any effect is
+fitted), against the pose and leg variables; the effects above may explain these.</p>
+<ul>{findings}</ul>{_img(out_dir / "legs.png")}{_img(out_dir / "time.png")}
 </body></html>"""
     path = out_dir / "index.html"
     path.write_text(page)

@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from hilcal.calibration import CalibrationOutcome
+    from hilcal.recording import Recording
     from hilcal.robot import Robot
 
 
@@ -93,6 +94,38 @@ def identify(
     ident = outcome.identification
     out.print(f"fit: max |residual| {ident.max_abs_residual:.4f} mm, RMS {ident.rms_residual:.4f} mm, "
               f"{ident.n_iterations} evaluations, converged={ident.converged}")
+    hint = _diagnose_hint(rec, outcome)
+    if hint:
+        out.print(hint, highlight=False, soft_wrap=True)
+
+
+REPEAT_FACTOR = 3.0
+"""A verify error this many times the repeated poses' own scatter is more than noise."""
+
+
+def _diagnose_hint(rec: Recording, outcome: CalibrationOutcome) -> str | None:
+    """When the calibrated verify error is far above the scatter of the recording's repeated poses (or no scatter
+    is known), say so and point at `hilcal diagnose`: the geometric model may leave physics or a set-up fault out."""
+    import numpy as np
+
+    from hilcal.discovery.noise import find_repeats
+
+    if outcome.after is None:
+        return None
+    after = outcome.after.position_mm.rms
+    groups = find_repeats(rec)
+    if not groups:
+        return (f"The verify RMS after calibration is {after:.4f} mm; the recording has no repeated poses, so its "
+                "noise is unknown here. If that is above your instrument's noise, `hilcal diagnose` looks for what "
+                "the geometric model leaves out (missing physics, set-up faults).")
+    deviations = np.concatenate([rec.meas[g, :3] - rec.meas[g, :3].mean(axis=0) for g in groups])
+    dof = sum(len(g) - 1 for g in groups)
+    scatter = float(np.sqrt(np.sum(deviations**2) / dof))
+    if after <= REPEAT_FACTOR * scatter:
+        return None
+    return (f"The verify RMS after calibration, {after:.4f} mm, is {after / scatter:.0f} times the scatter of the "
+            f"recording's repeated poses ({scatter:.4f} mm, {len(groups)} group(s)): the geometric model leaves "
+            "something out. `hilcal diagnose` names it (missing physics, set-up faults).")
 
 
 def diagnose(
@@ -151,6 +184,9 @@ def diagnose(
                           "" if s.verify is None else f"{s.verify.position_mm.rms:.4f}", ", ".join(s.removed))
         out.print(table)
     out.print(accuracy_table("verify poses (held out)", [("geometry only", diag.before), ("final model", diag.after)]))
+    if diag.findings:
+        out.print("Where the geometry-only residual lives (each leg's residual before any effect is fitted, against "
+                  "the pose and leg variables; the effects above may explain these):", highlight=False)
     for finding in diag.findings[:5]:
         out.print(f"  - {finding.text}", highlight=False)
     if page is not None:

@@ -95,7 +95,8 @@ def test_import_says_how_to_read_a_reversed_leg_and_the_fix_reads_it(tmp_path):
     files = [folder / "day1.csv", folder / "day2.csv"]
     right = import_recording(files, load_map(folder / "map.toml"), robot=robot).recording.legs_mm
     text = (folder / "map.toml").read_text()
-    wrong = text.replace("mm_per_unit = [5.0, 5.0, 5.0, 5.0, 5.0, 5.0]", "mm_per_unit = [5.0, 5.0, 5.0, -5.0, 5.0, 5.0]")
+    wrong = text.replace("mm_per_unit = [5.0, 5.0, 5.0, 5.0, 5.0, 5.0]",
+                         "mm_per_unit = [5.0, 5.0, 5.0, -5.0, 5.0, 5.0]")
     wrong = wrong.replace("zero_mm = [812.0, 812.0, 812.0, 812.0, 812.0, 812.0]",
                           "zero_mm = [812.0, 812.0, 812.0, 969.0, 812.0, 812.0]")  # within the leg limits
     assert wrong.count("-5.0") == 1 and "969.0" in wrong
