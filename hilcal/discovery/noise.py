@@ -162,7 +162,7 @@ def noise_from_repeats(residuals: np.ndarray, groups: list[np.ndarray]) -> tuple
 
 
 def noise_yardstick(rec: Recording, robot: Robot, residuals: np.ndarray, length_mm: float,
-                    cmm_sigma_mm: float | None = None) -> NoiseLevel:
+                    cmm_sigma_mm: float | None = None, pose_sigma: tuple[float, float] | None = None) -> NoiseLevel:
     """Every available noise estimate for the rows of rec, and the one to trust (see the module docstring).
 
     `residuals` [N, 6] are the geometric model's pose residuals of every row (residual metric), used for
@@ -175,6 +175,11 @@ def noise_yardstick(rec: Recording, robot: Robot, residuals: np.ndarray, length_
 
     if cmm_sigma_mm is not None:
         estimates.append(from_sigma(cmm_sigma_mm, "--cmm-sigma-mm", None))
+    if pose_sigma is not None:
+        position_mm, orientation_deg = pose_sigma
+        spread = np.array([position_mm] * 3 + [np.radians(orientation_deg) * length_mm] * 3)
+        estimates.append(NoiseEstimate(f"--pose-sigma-mm {position_mm:g} --pose-sigma-deg {orientation_deg:g}",
+                                       np.broadcast_to(np.diag(spread**2), (rec.n, 6, 6)).copy(), None, None))
     if robot.sphere_sigma_mm is not None:
         estimates.append(from_sigma(robot.sphere_sigma_mm, "robot file cmm.sphere_sigma_mm", None))
     column = rec.extra.get("sphere_fit_rms_mm")

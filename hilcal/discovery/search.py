@@ -266,26 +266,30 @@ def final_without(final: IdentificationResult, chosen: list[TermGroup], group: T
 def diagnose(
     rec: Recording, robot: Robot, *, alpha: float = DEFAULT_ALPHA, n_boot: int = 999, seed: int = 0,
     cmm_sigma_mm: float | None = None, max_steps: int = MAX_STEPS, generic: bool = True,
+    pose_sigma: tuple[float, float] | None = None,
 ) -> Diagnosis:
     """Locate, name and model the physics that the rigid geometric model leaves out of a recording.
+
+    The noise yardstick may be stated: ``cmm_sigma_mm`` (sphere centres, through the robot file's sphere layout) or
+    ``pose_sigma`` (mm per position coordinate, degrees per orientation axis: a tracker's 6-DoF probe).
 
     BLAS runs on one thread here: the matrices are small (6 N rows, tens of columns), so threads only add
     synchronisation, and on a busy PC their busy-waiting made the search several times slower
     (benchmarks/bench_diagnose.py)."""
     with threadpool_limits(limits=1, user_api="blas"):
         return _diagnose(rec, robot, alpha=alpha, n_boot=n_boot, seed=seed, cmm_sigma_mm=cmm_sigma_mm,
-                         max_steps=max_steps, generic=generic)
+                         max_steps=max_steps, generic=generic, pose_sigma=pose_sigma)
 
 
 def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: int, cmm_sigma_mm: float | None,
-              max_steps: int, generic: bool) -> Diagnosis:
+              max_steps: int, generic: bool, pose_sigma: tuple[float, float] | None) -> Diagnosis:
     wiring = check_wiring(rec.legs_mm, rec.meas, robot)
     if wiring.problem:
         log.info("leg_wiring", problem=wiring.sentence())
         if not wiring.dead:
             rec = dataclasses.replace(rec, legs_mm=wiring.corrected(rec.legs_mm))
     kwargs = {"alpha": alpha, "n_boot": n_boot, "seed": seed, "cmm_sigma_mm": cmm_sigma_mm, "max_steps": max_steps,
-              "generic": generic}
+              "generic": generic, "pose_sigma": pose_sigma}
     diag = _search(rec, robot, **kwargs)
     outliers = _outliers(diag.left_out_mm)
     if outliers.size:
@@ -334,7 +338,8 @@ def _outliers(left_out_mm: np.ndarray | None) -> np.ndarray:
 
 
 def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: int, cmm_sigma_mm: float | None,
-            max_steps: int, generic: bool, stops_from: Recording | None = None) -> Diagnosis:
+            max_steps: int, generic: bool, pose_sigma: tuple[float, float] | None = None,
+            stops_from: Recording | None = None) -> Diagnosis:
     """The diagnosis of `rec` as given (end stops are looked for in `stops_from`, the rows before any exclusion)."""
     p = Problem.of(rec, robot)
     library, untestable = library_groups(p.ctx, robot)
@@ -357,7 +362,7 @@ def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: in
     after = verify_accuracy(p, final, chosen)
 
     residuals_all = pose_difference(rec.meas, predict(p, geo, [], np.ones(rec.n, dtype=bool)), p.length_mm)
-    noise = noise_yardstick(rec, robot, residuals_all, p.length_mm, cmm_sigma_mm)
+    noise = noise_yardstick(rec, robot, residuals_all, p.length_mm, cmm_sigma_mm, pose_sigma)
     r_geo, J_geo = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm)(geo.x)
     ratio = None
     if noise.chosen is not None:

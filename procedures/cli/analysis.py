@@ -136,6 +136,13 @@ def diagnose(
     cmm_sigma_mm: Annotated[float | None, typer.Option(
         "--cmm-sigma-mm", help="CMM sphere-centre uncertainty (mm, 1 sigma per coordinate): the noise yardstick",
     )] = None,
+    pose_sigma_mm: Annotated[float | None, typer.Option(
+        "--pose-sigma-mm", help="stated pose noise of the instrument (mm, 1 sigma per position coordinate), e.g. a "
+        "tracker's 6-DoF probe; with --pose-sigma-deg",
+    )] = None,
+    pose_sigma_deg: Annotated[float | None, typer.Option(
+        "--pose-sigma-deg", help="stated orientation noise (degrees, 1 sigma per axis); with --pose-sigma-mm",
+    )] = None,
     alpha: Annotated[float, typer.Option(help="false-alarm rate on a recording without missing physics")] = 0.02,
     seed: Annotated[int, typer.Option(help="seed of the bootstrap")] = 0,
 ) -> None:
@@ -149,10 +156,15 @@ def diagnose(
         fail("--alpha must lie in (0, 1)")
     if cmm_sigma_mm is not None and not cmm_sigma_mm > 0:
         fail("--cmm-sigma-mm must be a positive length in mm")
+    if (pose_sigma_mm is None) != (pose_sigma_deg is None):
+        fail("--pose-sigma-mm and --pose-sigma-deg go together: give the instrument's position and orientation noise")
+    pose_sigma = None if pose_sigma_mm is None else (pose_sigma_mm, pose_sigma_deg)
+    if pose_sigma is not None and not (pose_sigma[0] > 0 and pose_sigma[1] > 0):
+        fail("--pose-sigma-mm and --pose-sigma-deg must be positive (mm and degrees)")
     rb = robot_or_fail(robot)
     try:
         rec = read_recording(recording, rb)
-        diag = run_diagnosis(rec, rb, alpha=alpha, seed=seed, cmm_sigma_mm=cmm_sigma_mm)
+        diag = run_diagnosis(rec, rb, alpha=alpha, seed=seed, cmm_sigma_mm=cmm_sigma_mm, pose_sigma=pose_sigma)
     except (RecordingError, IdentificationError, KinematicsError) as e:
         fail(str(e))
     page = None

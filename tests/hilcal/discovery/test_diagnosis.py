@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
+from hilcal.discovery.noise import sphere_noise_covariance
 from hilcal.discovery.search import diagnose
 from hilcal.metrics import AccuracySummary
 from hilcal.planning import design
@@ -94,6 +95,14 @@ def test_without_a_noise_source_only_relative_tests_are_claimed(robot, plan):
     assert diag.noise_ratio is None
     stated = diagnose(rec, robot, cmm_sigma_mm=0.005)
     assert "--cmm-sigma-mm" in stated.explanation and "within its measurement noise" in stated.explanation
+    # The same noise stated as a 6-DoF instrument's pose sigmas (the sphere registration's average, per axis).
+    length = robot.characteristic_length_mm
+    cov = sphere_noise_covariance(robot, rec.meas, 0.005, length)
+    sd = np.sqrt(np.mean(np.diagonal(cov, axis1=1, axis2=2), axis=0))
+    pose_sigma = (float(np.sqrt(np.mean(sd[:3] ** 2))), float(np.degrees(np.sqrt(np.mean(sd[3:] ** 2)) / length)))
+    as_pose = diagnose(rec, robot, pose_sigma=pose_sigma)
+    assert "--pose-sigma-mm" in as_pose.explanation and "within its measurement noise" in as_pose.explanation
+    assert as_pose.noise.chosen.position_mm == pytest.approx(np.sqrt(3) * pose_sigma[0])
 
 
 def _rig_forces(robot, rec, truth, errors):
@@ -168,7 +177,8 @@ def test_cli_diagnose_json_and_report(robot, plan, tmp_path):
     assert "data:image/png;base64," in (tmp_path / "rep" / "index.html").read_text()
 
 
-@pytest.mark.parametrize("args, message", [([], "missing"), (["--cmm-sigma-mm", "-1"], "positive")])
+@pytest.mark.parametrize("args, message", [([], "missing"), (["--cmm-sigma-mm", "-1"], "positive"),
+                                           (["--pose-sigma-mm", "0.002"], "go together")])
 def test_cli_diagnose_bad_input_exit_2(tmp_path, args, message):
     bad = tmp_path / "bad.csv"
     bad.write_text("seq,phase\n1,measure\n")
