@@ -23,8 +23,8 @@ demo: venv
 lint: venv
 	$(BIN)/ruff check .
 
-# Byte-compile first: with PYTHONDONTWRITEBYTECODE set (as on the machines this project is built on) every process the tests start would
-# otherwise compile the project's sources again (~0.15 s per `hilcal` start).
+# Byte-compile first: with PYTHONDONTWRITEBYTECODE set (as on the machines this project is built on), every
+# process the tests start would otherwise compile the project's sources again (~0.15 s per `hilcal` start).
 test: lint
 	$(BIN)/python -m compileall -q -j0 hilcal drivers procedures sim_devices benchmarks tests >/dev/null
 	$(BIN)/pytest -n $(WORKERS) --dist loadfile --no-loadscope-reorder --durations=25

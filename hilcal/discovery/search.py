@@ -338,7 +338,7 @@ def _outliers(left_out_mm: np.ndarray | None) -> np.ndarray:
 
 
 def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: int, cmm_sigma_mm: float | None,
-            max_steps: int, generic: bool, pose_sigma: tuple[float, float] | None = None,
+            max_steps: int, generic: bool, pose_sigma: tuple[float, float] | None,
             stops_from: Recording | None = None) -> Diagnosis:
     """The diagnosis of `rec` as given (end stops are looked for in `stops_from`, the rows before any exclusion)."""
     p = Problem.of(rec, robot)

@@ -60,10 +60,10 @@ def run(
 
     def execute(confirm, session=None):
         result = execute_run(request, confirm, session)
-        from hilcal.reports.run import links_lines  # after the run: plotting is not loaded before the machine moves
-
         (out if result.code == 0 else err).print(result.message, highlight=False, markup=False, soft_wrap=True)
         if result.report_path is not None:
+            from hilcal.reports.run import links_lines  # here, not at start-up: plotting loads after the machine moved
+
             for line in links_lines(json.loads(result.report_path.read_text()).get("links")):
                 out.print(line, highlight=False, markup=False, soft_wrap=True)
             out.print(f"report: {result.report_path} and {result.report_path.with_suffix('.html')}", soft_wrap=True)
