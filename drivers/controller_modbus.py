@@ -1,10 +1,11 @@
 """Modbus driver of the controller's parameter interface (pymodbus client; Modbus TCP or RTU).
 
 ``ControllerParams.upload`` is a transaction (see docs/protocols.md): refuse unless the controller is
-DISABLED; OPEN_STAGING; write the staging bank in chunks of at most 123 registers; write STAGED_LENGTH and
-STAGED_CRC32; read staging back and compare; COMMIT (the controller checks length, CRC and limits and swaps
-atomically, keeping the previous live set as backup); read live back and compare. Saving to non-volatile
-memory is a separate explicit step (``save``); ``rollback`` swaps live and backup. Requests are never retried
+DISABLED; OPEN_STAGING; write the staging banks in chunks of at most 123 registers (the geometry and, on a
+register-map 1.1 controller, the compensation block); write STAGED_LENGTH, STAGED_CRC32 and STAGED_COMP_CRC32; read
+staging back and compare; COMMIT (the controller checks length, CRCs and limits and swaps geometry and block
+atomically, keeping the previous pair as backup); read live back and compare. Saving to non-volatile memory is a
+separate explicit step (``save``); ``rollback`` swaps live and backup (both). Requests are never retried
 (retries=0): a write whose answer was lost may have been executed, so the caller starts a new upload, which
 re-opens staging. Every operation returns (or attaches to its exception) an ``UploadRecord`` of each write,
 the hashes of the sets involved, timestamps and read-back results; ``records`` keeps them all.
@@ -13,27 +14,41 @@ the hashes of the sets involved, timestamps and read-back results; ``records`` k
 from __future__ import annotations
 
 import hashlib
-import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from datetime import UTC, datetime
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from drivers.parameter_sets import (
+    CapabilityError,
+    CompensationBlock,
+    Identity,
+    IdentityError,
+    ModbusExceptionResponse,
+    ModbusTransportError,
+    NotDisabled,
+    ParameterSet,
+    ParameterValidationError,
+    ParamsError,
+    ReadbackMismatch,
+    UploadRecord,
+    UploadRefused,
+    WriteRecord,
+    now_utc,
+)
+from hilcal.protocols.compensation import COMP_BACKUP_BANK, COMP_LIVE_BANK, COMP_SAVED_BANK, COMP_STAGING_BANK
 from hilcal.protocols.controller_states import ControllerState
 from hilcal.protocols.registers import (
-    A_B_LIMIT_MM,
     BACKUP_BANK,
     CAPABILITIES_REG,
     CONTROLLER_STATE_REG,
     L0_INDEX,
-    L0_MAX_MM,
-    L0_MIN_MM,
     L0_REGISTERS,
+    LEG_FORCES_REG,
+    LEG_TEMPERATURE_REG,
     LIVE_BANK,
+    LIVE_COMP_CRC32_REG,
     LIVE_CRC32_REG,
     MAGIC,
     MAGIC_REG,
@@ -56,209 +71,27 @@ from hilcal.protocols.registers import (
     floats_from_words,
     join_u32,
     split_u32,
-    words_from_floats,
     words_to_bytes,
 )
-from hilcal.robot import Robot
 
 if TYPE_CHECKING:
     from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
+__all__ = [
+    "CapabilityError", "CompensationBlock", "ControllerParams", "Identity", "IdentityError", "ModbusExceptionResponse",
+    "ModbusTransportError", "NotDisabled", "ParameterSet", "ParameterValidationError", "ParamsError",
+    "ReadbackMismatch", "UploadRecord", "UploadRefused", "WriteRecord",
+]
+
 log = structlog.get_logger(__name__)
 
-Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 DEFAULT_CHUNK_REGISTERS = 64
 IDENTITY_REGISTERS = PARAMETER_COUNT_REG.end - MAGIC_REG.address
+CAPABILITY_MASK = 0x007F
 
 
-class ParamsError(Exception):
-    """Base class of parameter-interface errors; ``record`` is the UploadRecord of the failed operation."""
-
-    record: UploadRecord | None = None
-
-
-class ParameterValidationError(ParamsError, ValueError):
-    """A parameter set that is not sane (non-finite, out of bounds, wrong shape); nothing was written."""
-
-
-class ModbusTransportError(ParamsError):
-    """The connection failed or timed out (e.g. dropped in the middle of an upload)."""
-
-
-class ModbusExceptionResponse(ParamsError):
-    """The controller answered a request with a Modbus exception."""
-
-    def __init__(self, message: str, function: int, address: int, code: int) -> None:
-        super().__init__(message)
-        self.function = function
-        self.address = address
-        self.code = code
-
-
-class IdentityError(ParamsError):
-    """The device is not a compatible controller (magic or parameter count)."""
-
-
-class NotDisabled(ParamsError):
-    """Parameters can only change while the controller is DISABLED; nothing was written."""
-
-
-class CapabilityError(ParamsError):
-    """The controller cannot take this set (e.g. a/b change on an offsets-only controller); nothing written."""
-
-
-class UploadRefused(ParamsError):
-    """The controller refused a parameter command; ``status`` says why. The live set is unchanged."""
-
-    def __init__(self, message: str, status: ParamStatus) -> None:
-        super().__init__(message)
-        self.status = status
-
-
-class ReadbackMismatch(ParamsError):
-    """A register block read back differs from what was written."""
-
-
-def _check_finite(values: list[float], what: str, low: float, high: float) -> list[float]:
-    for v in values:
-        if not math.isfinite(v) or not low <= v <= high:
-            raise ValueError(f"{what} value {v} outside [{low}, {high}] mm")
-    return values
-
-
-class ParameterSet(BaseModel):
-    """The 42 controller parameters in mm: platform joints a, base joints b (6 x 3 each), leg offsets l0 (6)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-    a_mm: Annotated[list[Vec3], Field(min_length=6, max_length=6)]
-    b_mm: Annotated[list[Vec3], Field(min_length=6, max_length=6)]
-    l0_mm: Annotated[list[float], Field(min_length=6, max_length=6)]
-
-    @field_validator("a_mm", "b_mm")
-    @classmethod
-    def _joints(cls, v: list[list[float]]) -> list[list[float]]:
-        for p in v:
-            _check_finite(p, "joint coordinate", -A_B_LIMIT_MM, A_B_LIMIT_MM)
-        return v
-
-    @field_validator("l0_mm")
-    @classmethod
-    def _offsets(cls, v: list[float]) -> list[float]:
-        return _check_finite(v, "leg offset", L0_MIN_MM, L0_MAX_MM)
-
-    @classmethod
-    def from_vector(cls, values: Sequence[float] | np.ndarray) -> ParameterSet:
-        """From 42 values in register order: a (leg-major x, y, z), b, l0. ParameterValidationError if bad."""
-        v = np.asarray(values, dtype=float)
-        if v.shape != (PARAMETER_COUNT,):
-            raise ParameterValidationError(f"a parameter set has {PARAMETER_COUNT} values, got shape {v.shape}")
-        try:
-            return cls(
-                a_mm=v[:18].reshape(6, 3).tolist(),
-                b_mm=v[18:36].reshape(6, 3).tolist(),
-                l0_mm=v[L0_INDEX:].tolist(),
-            )
-        except ValidationError as err:
-            raise ParameterValidationError(f"invalid parameter set: {err}") from None
-
-    @classmethod
-    def from_robot(cls, robot: Robot) -> ParameterSet:
-        """The nominal set of a robot file."""
-        return cls.from_vector(np.concatenate([robot.a.ravel(), robot.b.ravel(), robot.l0]))
-
-    @classmethod
-    def from_words(cls, words: Sequence[int]) -> ParameterSet:
-        """From 84 registers (float32 ABCD); ParameterValidationError for anything that is not a sane set."""
-        if len(words) != PARAMETER_REGISTERS:
-            raise ParameterValidationError(f"expected {PARAMETER_REGISTERS} registers, got {len(words)}")
-        try:
-            values = floats_from_words(words)
-        except ValueError as err:
-            raise ParameterValidationError(str(err)) from None
-        return cls.from_vector(values)
-
-    def to_vector(self) -> np.ndarray:
-        return np.concatenate([np.ravel(self.a_mm), np.ravel(self.b_mm), self.l0_mm]).astype(float)
-
-    def to_words(self) -> list[int]:
-        """84 registers: float32 ABCD (values rounded to float32)."""
-        return words_from_floats(self.to_vector().tolist())
-
-    def as_float32(self) -> ParameterSet:
-        """The set the controller will actually hold (every value rounded to float32)."""
-        return ParameterSet.from_words(self.to_words())
-
-    def crc32(self) -> int:
-        return crc32_of_words(self.to_words())
-
-    def sha256(self) -> str:
-        return hashlib.sha256(words_to_bytes(self.to_words())).hexdigest()
-
-
-def _now() -> str:
-    return datetime.now(UTC).isoformat(timespec="microseconds")
-
-
-class WriteRecord(BaseModel):
-    """One write request: what, where, when and how it ended."""
-
-    function: Literal["write_register", "write_registers"]
-    address: int
-    count: int
-    at: str
-    ok: bool = False
-    error: str | None = None
-
-
-class UploadRecord(BaseModel):
-    """Audit record of one parameter operation (upload, rollback or save)."""
-
-    operation: Literal["upload", "rollback", "save"]
-    endpoint: str
-    device_id: int
-    started_at: str
-    finished_at: str | None = None
-    outcome: Literal["pending", "committed", "rolled_back", "saved", "refused", "failed"] = "pending"
-    error: str | None = None
-    identity: dict[str, int] | None = None
-    offsets_only: bool = False
-    params_sha256: str | None = None
-    params_crc32: str | None = None
-    previous_live_sha256: str | None = None
-    previous_live_crc32: str | None = None
-    live_after_sha256: str | None = None
-    staged_registers: int | None = None
-    writes: list[WriteRecord] = Field(default_factory=list)
-    staging_readback_match: bool | None = None
-    live_readback_match: bool | None = None
-    controller_status: str | None = None
-    saved: bool = False
-    saved_readback_match: bool | None = None
-
-
-@dataclass(frozen=True)
-class Identity:
-    magic: int
-    protocol_version: int
-    firmware_version: int
-    serial_number: int
-    capabilities: Capability
-    parameter_count: int
-
-    @property
-    def offsets_only(self) -> bool:
-        return Capability.OFFSETS_ONLY in self.capabilities and Capability.FULL_GEOMETRY not in self.capabilities
-
-    def as_dict(self) -> dict[str, int]:
-        return {
-            "magic": self.magic,
-            "protocol_version": self.protocol_version,
-            "firmware_version": self.firmware_version,
-            "serial_number": self.serial_number,
-            "capabilities": int(self.capabilities),
-            "parameter_count": self.parameter_count,
-        }
+def _sha(words: Sequence[int]) -> str:
+    return hashlib.sha256(words_to_bytes(words)).hexdigest()
 
 
 class ControllerParams:
@@ -340,7 +173,7 @@ class ControllerParams:
     def _write(self, record: UploadRecord | None, address: int, values: Sequence[int]) -> None:
         single = len(values) == 1
         entry = WriteRecord(
-            function="write_register" if single else "write_registers", address=address, count=len(values), at=_now()
+            function="write_register" if single else "write_registers", address=address, count=len(values), at=now_utc()
         )
         if record is not None:
             record.writes.append(entry)
@@ -363,7 +196,7 @@ class ControllerParams:
             protocol_version=words[1],
             firmware_version=words[2],
             serial_number=join_u32(words[3:5]),
-            capabilities=Capability(words[CAPABILITIES_REG.address] & 0x000F),
+            capabilities=Capability(words[CAPABILITIES_REG.address] & CAPABILITY_MASK),
             parameter_count=words[6],
         )
         if identity.magic != MAGIC or identity.parameter_count != PARAMETER_COUNT:
@@ -396,11 +229,26 @@ class ControllerParams:
     def read_saved(self) -> ParameterSet:
         return ParameterSet.from_words(self._read_block(SAVED_BANK))
 
+    def read_live_compensation(self) -> CompensationBlock:
+        """The compensation block in use (register map 1.1 only)."""
+        return CompensationBlock.from_words(self._read_block(COMP_LIVE_BANK))
+
+    def read_saved_compensation(self) -> CompensationBlock:
+        return CompensationBlock.from_words(self._read_block(COMP_SAVED_BANK))
+
+    def read_leg_forces_kn(self) -> np.ndarray:
+        """Each leg's axial compression as the controller reads it (kN; FORCE_READING only)."""
+        return np.asarray(floats_from_words(self._read_block(LEG_FORCES_REG)), dtype=float)
+
+    def read_temperature_c(self) -> float:
+        """The leg temperature as the controller reads it (°C; TEMPERATURE_READING only)."""
+        return float(floats_from_words(self._read_block(LEG_TEMPERATURE_REG))[0])
+
     # ------------------------------------------------------------------ transactions
 
     def _begin(self, operation: Literal["upload", "rollback", "save"]) -> tuple[UploadRecord, Identity]:
         record = UploadRecord(operation=operation, endpoint=self.endpoint, device_id=self.device_id,
-                              started_at=_now())
+                              started_at=now_utc())
         self.records.append(record)
         try:
             identity = self.read_identity()
@@ -412,7 +260,11 @@ class ControllerParams:
                                   "nothing written")
             live = self._read_block(LIVE_BANK)
             record.previous_live_crc32 = f"{crc32_of_words(live):08x}"
-            record.previous_live_sha256 = hashlib.sha256(words_to_bytes(live)).hexdigest()
+            record.previous_live_sha256 = _sha(live)
+            if identity.compensation:
+                comp = self._read_block(COMP_LIVE_BANK)
+                record.previous_compensation_sha256 = _sha(comp)
+                record.previous_compensation_crc32 = f"{crc32_of_words(comp):08x}"
         except ParamsError as err:
             self._finish(record, err)
             raise
@@ -424,7 +276,7 @@ class ControllerParams:
         err: ParamsError | None,
         outcome: Literal["committed", "rolled_back", "saved"] = "committed",
     ) -> None:
-        record.finished_at = _now()
+        record.finished_at = now_utc()
         if err is None:
             record.outcome = outcome
             log.info("controller_params", operation=record.operation, outcome=record.outcome,
@@ -443,69 +295,112 @@ class ControllerParams:
         if status is not ParamStatus.OK:
             raise UploadRefused(f"controller refused {command.name}: {status.name}", status)
 
-    def upload(self, params: ParameterSet | Sequence[float] | np.ndarray, *, save: bool = False) -> UploadRecord:
-        """Write, verify and commit a parameter set (see the module docstring); save=True also saves it."""
+    def _geometry_blocks(self, identity: Identity, live: ParameterSet, target: ParameterSet
+                         ) -> list[tuple[int, list[int]]]:
+        """(offset, registers) chunks of the geometry staging bank this controller takes."""
+        words = target.to_words()
+        if identity.offsets_only:
+            if not np.array_equal(live.to_vector()[:L0_INDEX], target.to_vector()[:L0_INDEX]):
+                raise CapabilityError("offsets-only controller: this set changes a/b joint coordinates; only "
+                                      "the six leg offsets l0 can be written; nothing written")
+            first = L0_INDEX * REGISTERS_PER_FLOAT
+            return [(k, words[k:min(k + self.chunk_registers, first + L0_REGISTERS)])
+                    for k in range(first, first + L0_REGISTERS, self.chunk_registers)]
+        if Capability.FULL_GEOMETRY in identity.capabilities:
+            return [(k, words[k:k + self.chunk_registers]) for k in range(0, PARAMETER_REGISTERS,
+                                                                             self.chunk_registers)]
+        raise CapabilityError(f"controller capabilities {identity.capabilities!r} allow no parameter writes")
+
+    @staticmethod
+    def _check_compensation(identity: Identity, block: CompensationBlock) -> None:
+        if not identity.compensation:
+            raise CapabilityError("this controller (register map 1.0) has no compensation block: upload the "
+                                  "geometry alone; nothing written")
+        missing = block.needs() & ~identity.capabilities
+        if missing:
+            raise CapabilityError(f"the compensation block needs {missing.name}, which this controller does not "
+                                  "have; nothing written")
+
+    def upload(self, params: ParameterSet | Sequence[float] | np.ndarray, *, save: bool = False,
+               compensation: CompensationBlock | None = None) -> UploadRecord:
+        """Write, verify and commit a parameter set, and with it a compensation block when one is given (see the
+        module docstring); save=True also saves them. Without a block the controller keeps its own."""
         target = params if isinstance(params, ParameterSet) else ParameterSet.from_vector(params)
         target = target.as_float32()
         words = target.to_words()
+        comp_words = None if compensation is None else compensation.as_float32().to_words()
         record, identity = self._begin("upload")
         record.params_sha256 = target.sha256()
         record.params_crc32 = f"{target.crc32():08x}"
         try:
-            live = self.read_live()
-            if identity.offsets_only:
-                if not np.array_equal(live.to_vector()[:L0_INDEX], target.to_vector()[:L0_INDEX]):
-                    raise CapabilityError("offsets-only controller: this set changes a/b joint coordinates; only "
-                                          "the six leg offsets l0 can be written; nothing written")
-                first = L0_INDEX * REGISTERS_PER_FLOAT
-                blocks = [(first, words[first:first + L0_REGISTERS])]
-            elif Capability.FULL_GEOMETRY in identity.capabilities:
-                blocks = [(k, words[k:k + self.chunk_registers]) for k in range(0, PARAMETER_REGISTERS,
-                                                                                 self.chunk_registers)]
-            else:
-                raise CapabilityError(f"controller capabilities {identity.capabilities!r} allow no parameter writes")
-            if identity.offsets_only:
-                blocks = [(off + k, blk[k:k + self.chunk_registers]) for off, blk in blocks
-                          for k in range(0, len(blk), self.chunk_registers)]
-            record.staged_registers = sum(len(b) for _, b in blocks)
+            blocks = self._geometry_blocks(identity, self.read_live(), target)
+            comp_blocks: list[tuple[int, list[int]]] = []
+            if compensation is not None and comp_words is not None:
+                self._check_compensation(identity, compensation)
+                record.compensation_sha256 = _sha(comp_words)
+                record.compensation_crc32 = f"{crc32_of_words(comp_words):08x}"
+                comp_blocks = [(k, comp_words[k:k + self.chunk_registers])
+                               for k in range(0, len(comp_words), self.chunk_registers)]
+            record.staged_registers = sum(len(b) for _, b in blocks) + sum(len(b) for _, b in comp_blocks)
             self._command(record, ParamCommand.OPEN_STAGING)
             for offset, block in blocks:
                 self._write(record, STAGING_BANK.address + offset, block)
-            self._write(record, STAGED_LENGTH_REG.address, [record.staged_registers, *split_u32(target.crc32())])
-            staged = self._read_block(STAGING_BANK)
-            record.staging_readback_match = staged == words
-            if not record.staging_readback_match:
-                bad = [k for k, (a, b) in enumerate(zip(staged, words, strict=True)) if a != b]
-                raise ReadbackMismatch(f"staging read-back differs at registers {bad[:8]}; not committed")
+            for offset, block in comp_blocks:
+                self._write(record, COMP_STAGING_BANK.address + offset, block)
+            header = [record.staged_registers, *split_u32(target.crc32())]
+            if comp_words is not None:
+                header += split_u32(crc32_of_words(comp_words))
+            self._write(record, STAGED_LENGTH_REG.address, header)
+            self._compare(record, "staging", self._read_block(STAGING_BANK), words)
+            if comp_words is not None:
+                self._compare(record, "compensation staging", self._read_block(COMP_STAGING_BANK), comp_words)
             self._command(record, ParamCommand.COMMIT)
             live_after = self._read_block(LIVE_BANK)
             live_crc = join_u32(self._read_block(LIVE_CRC32_REG))
-            record.live_after_sha256 = hashlib.sha256(words_to_bytes(live_after)).hexdigest()
+            record.live_after_sha256 = _sha(live_after)
             record.live_readback_match = live_after == words and live_crc == target.crc32()
+            if comp_words is not None:
+                comp_after = self._read_block(COMP_LIVE_BANK)
+                comp_crc = join_u32(self._read_block(LIVE_COMP_CRC32_REG))
+                record.compensation_readback_match = comp_after == comp_words and comp_crc == crc32_of_words(
+                    comp_words)
+                record.live_readback_match = record.live_readback_match and record.compensation_readback_match
             if not record.live_readback_match:
                 raise ReadbackMismatch("live set read back after COMMIT differs from the uploaded set")
             if save:
-                self._save_steps(record)
+                self._save_steps(record, identity)
         except ParamsError as err:
             self._finish(record, err)
             raise
         self._finish(record, None, "committed")
         return record
 
-    def _save_steps(self, record: UploadRecord) -> None:
+    @staticmethod
+    def _compare(record: UploadRecord, what: str, read: list[int], written: list[int]) -> None:
+        match = read == written
+        if what == "staging":
+            record.staging_readback_match = match
+        else:
+            record.staging_readback_match = bool(record.staging_readback_match) and match
+        if not match:
+            bad = [k for k, (a, b) in enumerate(zip(read, written, strict=True)) if a != b]
+            raise ReadbackMismatch(f"{what} read-back differs at registers {bad[:8]}; not committed")
+
+    def _save_steps(self, record: UploadRecord, identity: Identity) -> None:
         self._command(record, ParamCommand.SAVE)
-        saved = self._read_block(SAVED_BANK)
-        live = self._read_block(LIVE_BANK)
-        record.saved_readback_match = saved == live
+        record.saved_readback_match = self._read_block(SAVED_BANK) == self._read_block(LIVE_BANK)
+        if identity.compensation:
+            record.saved_readback_match = record.saved_readback_match and (
+                self._read_block(COMP_SAVED_BANK) == self._read_block(COMP_LIVE_BANK))
         if not record.saved_readback_match:
             raise ReadbackMismatch("non-volatile set read back after SAVE differs from the live set")
         record.saved = True
 
     def save(self) -> UploadRecord:
-        """Copy the live set to non-volatile memory (controller DISABLED) and verify it."""
-        record, _ = self._begin("save")
+        """Copy the live set (and block) to non-volatile memory (controller DISABLED) and verify it."""
+        record, identity = self._begin("save")
         try:
-            self._save_steps(record)
+            self._save_steps(record, identity)
         except ParamsError as err:
             self._finish(record, err)
             raise
@@ -513,16 +408,21 @@ class ControllerParams:
         return record
 
     def rollback(self) -> UploadRecord:
-        """Swap live and backup (controller DISABLED): undoes the last commit."""
-        record, _ = self._begin("rollback")
+        """Swap live and backup, geometry and block together (controller DISABLED): undoes the last commit."""
+        record, identity = self._begin("rollback")
         try:
             backup = self._read_block(BACKUP_BANK)
+            comp_backup = self._read_block(COMP_BACKUP_BANK) if identity.compensation else None
             self._command(record, ParamCommand.ROLLBACK)
             live_after = self._read_block(LIVE_BANK)
-            record.live_after_sha256 = hashlib.sha256(words_to_bytes(live_after)).hexdigest()
-            record.params_sha256 = hashlib.sha256(words_to_bytes(backup)).hexdigest()
+            record.live_after_sha256 = _sha(live_after)
+            record.params_sha256 = _sha(backup)
             record.params_crc32 = f"{crc32_of_words(backup):08x}"
             record.live_readback_match = live_after == backup
+            if comp_backup is not None:
+                record.compensation_sha256 = _sha(comp_backup)
+                record.compensation_readback_match = self._read_block(COMP_LIVE_BANK) == comp_backup
+                record.live_readback_match = record.live_readback_match and record.compensation_readback_match
             if not record.live_readback_match:
                 raise ReadbackMismatch("live set after ROLLBACK is not the former backup")
         except ParamsError as err:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import struct
 import time
 from collections.abc import Sequence
 from datetime import UTC, datetime
@@ -50,7 +51,8 @@ Floats6 = Annotated[list[float], Field(min_length=6, max_length=6)]
 
 
 class BankState(BaseModel):
-    """The controller's parameter banks (float32 values, stored exactly) and counters."""
+    """The controller's parameter banks (float32 values, stored exactly), its compensation banks (registers as hex,
+    None: the factory block) and counters."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -59,6 +61,19 @@ class BankState(BaseModel):
     saved: Floats42
     commit_counter: int
     save_counter: int
+    comp_live: str | None = None
+    comp_backup: str | None = None
+    comp_saved: str | None = None
+
+    def compensation_words(self) -> dict[str, list[int] | None]:
+        """The compensation banks as registers (None where the file holds none)."""
+        return {bank: None if text is None else list(struct.unpack(f">{len(text) // 4}H", bytes.fromhex(text)))
+                for bank, text in (("live", self.comp_live), ("backup", self.comp_backup),
+                                   ("saved", self.comp_saved))}
+
+
+def _hex(words: list[int] | None) -> str | None:
+    return None if words is None else struct.pack(f">{len(words)}H", *words).hex()
 
 
 class RigState(BaseModel):
@@ -182,8 +197,10 @@ class PersistentController(SimulatedController):
         self._saved_key: tuple[Any, ...] | None = None
         self._saved_motion: tuple[Any, ...] | None = None
         self._saved_at = 0.0
+        self._bank_state: tuple[int, BankState] | None = None
         if banks is not None:
-            self.restore_banks(banks.live, banks.saved, banks.backup, banks.commit_counter, banks.save_counter)
+            self.restore_banks(banks.live, banks.saved, banks.backup, banks.commit_counter, banks.save_counter,
+                               banks.compensation_words())
 
     def _tick(self) -> None:
         """Advance the rig clock to the simulated time now (whole CLOCK_STEP_S steps)."""
@@ -196,26 +213,35 @@ class PersistentController(SimulatedController):
         """What a state file holds, read now in one piece."""
         with self._lock:
             snap = super().snapshot()
-            backup = self.backup_parameters()
-            registers = self.param_registers()
             return SimState(
                 robot=self.robot.name,
                 written_at=datetime.now(UTC).isoformat(timespec="milliseconds"),
                 sequence=self._store.sequence + 1 if self._store is not None else 0,
                 controller_state=snap.state.name,
-                banks=BankState(
-                    live=self.live_parameters().tolist(),
-                    backup=None if backup is None else backup.tolist(),
-                    saved=self.saved_parameters().tolist(),
-                    commit_counter=registers["commit_counter"],
-                    save_counter=registers["save_counter"],
-                ),
+                banks=self._banks_state(),
                 rig=RigState(
                     reported_lengths_mm=self._sim_rig.reported_lengths().tolist(),
                     direction=self._sim_rig.motion_direction().tolist(),
                     time_s=self._sim_rig.time_s,
                 ),
             )
+
+    def _banks_state(self) -> BankState:
+        """The banks as the file holds them, rebuilt only when a bank changed (the heartbeat reads this often)."""
+        if self._bank_state is None or self._bank_state[0] != self.banks_version:
+            backup = self.backup_parameters()
+            registers = self.param_registers()
+            self._bank_state = (self.banks_version, BankState(
+                live=self.live_parameters().tolist(),
+                backup=None if backup is None else backup.tolist(),
+                saved=self.saved_parameters().tolist(),
+                commit_counter=registers["commit_counter"],
+                save_counter=registers["save_counter"],
+                comp_live=_hex(self.comp_words("live")),
+                comp_backup=None if backup is None else _hex(self.comp_words("backup")),
+                comp_saved=_hex(self.comp_words("saved")),
+            ))
+        return self._bank_state[1]
 
     def save_state(self, force: bool = False) -> None:
         """Write the state file if anything but the clock changed (legs while moving: throttled); force: always."""

@@ -5,6 +5,11 @@ protocol addresses. A parameter set is 42 IEEE-754 float32 values in mm, each in
 first and each word big-endian ("ABCD"). Order: a (leg 1 x, y, z, leg 2 x, y, z ... leg 6 z), b (same),
 l0 (legs 1..6). CRC-32 (``hilcal.protocols.checksums.crc32_ieee``) is taken over the 168 bytes of the 84
 registers, each register high byte first. See docs/protocols.md for the upload transaction.
+
+Register-map version 1.1 adds the COMPENSATION capability: a compensation block (``hilcal.protocols.compensation``)
+with its own four banks, staged, committed, backed up, saved and rolled back in the same transaction as the
+geometry, and the controller's own leg-force and leg-temperature readings. A 1.0 host that writes only the geometry
+leaves the block as it is.
 """
 
 from __future__ import annotations
@@ -32,8 +37,10 @@ L0_INDEX = 36
 
 MAGIC = 0x4843
 """Value of the MAGIC register ("HC"): identifies a hilcal-compatible controller."""
-PROTOCOL_VERSION = 0x0100
-"""Register-map version 1.0 (major << 8 | minor)."""
+PROTOCOL_VERSION = 0x0101
+"""Register-map version 1.1 (major << 8 | minor): 1.0 plus the compensation block and the sensor readings."""
+PROTOCOL_VERSION_1_0 = 0x0100
+"""What a controller without the compensation block reports."""
 
 PARAMETER_NAMES: tuple[str, ...] = (
     *(f"a{leg}_{axis}_mm" for leg in range(1, N_LEGS + 1) for axis in "xyz"),
@@ -94,6 +101,19 @@ STAGED_LENGTH_REG = Register(
 STAGED_CRC32_REG = Register(
     "STAGED_CRC32", 0x0031, 2, Access.READ_WRITE, "CRC-32 of all 84 staging registers, high word first"
 )
+STAGED_COMP_CRC32_REG = Register(
+    "STAGED_COMP_CRC32", 0x0033, 2, Access.READ_WRITE,
+    "CRC-32 of the staged compensation block; required when a compensation staging register was written",
+)
+LIVE_COMP_CRC32_REG = Register("LIVE_COMP_CRC32", 0x0038, 2, Access.READ, "CRC-32 of the live compensation block")
+BACKUP_COMP_CRC32_REG = Register("BACKUP_COMP_CRC32", 0x003A, 2, Access.READ,
+                                 "CRC-32 of the backup compensation block (0 if none)")
+SAVED_COMP_CRC32_REG = Register("SAVED_COMP_CRC32", 0x003C, 2, Access.READ,
+                                "CRC-32 of the non-volatile compensation block")
+LEG_FORCES_REG = Register("LEG_FORCES", 0x0040, 12, Access.READ,
+                          "six float32: each leg's axial compression as the controller reads it, kN")
+LEG_TEMPERATURE_REG = Register("LEG_TEMPERATURE", 0x004C, 2, Access.READ,
+                               "float32: the leg temperature as the controller reads it, °C")
 LIVE_BANK = Register("LIVE", 0x0100, PARAMETER_REGISTERS, Access.READ, "parameters in use")
 STAGING_BANK = Register("STAGING", 0x0200, PARAMETER_REGISTERS, Access.READ_WRITE, "parameters being uploaded")
 BACKUP_BANK = Register("BACKUP", 0x0300, PARAMETER_REGISTERS, Access.READ, "live set before the last commit")
@@ -122,7 +142,15 @@ REGISTER_MAP: tuple[Register, ...] = (
     STAGING_BANK,
     BACKUP_BANK,
     SAVED_BANK,
+    STAGED_COMP_CRC32_REG,
+    LIVE_COMP_CRC32_REG,
+    BACKUP_COMP_CRC32_REG,
+    SAVED_COMP_CRC32_REG,
+    LEG_FORCES_REG,
+    LEG_TEMPERATURE_REG,
 )
+"""Every register but the compensation block's banks (``hilcal.protocols.compensation.COMPENSATION_BANKS``); those
+after SAVED exist only on a controller with the capability they belong to."""
 
 STAGING_L0_ADDRESS = STAGING_BANK.address + L0_INDEX * REGISTERS_PER_FLOAT
 """First staging register of the leg offsets: the only writable part under OFFSETS_ONLY."""
@@ -138,13 +166,19 @@ class Capability(IntFlag):
     """Only the six leg offsets l0 are writable; staging a/b registers refuse writes."""
     NONVOLATILE_SAVE = 0x0004
     ROLLBACK = 0x0008
+    COMPENSATION = 0x0010
+    """Register-map 1.1: the compensation block is writable in the geometry's transaction."""
+    FORCE_READING = 0x0020
+    """The controller reads each leg's axial force (LEG_FORCES), so compliance terms can be applied."""
+    TEMPERATURE_READING = 0x0040
+    """The controller reads the leg temperature (LEG_TEMPERATURE), so a thermal coefficient can be applied."""
 
 
 class ParamCommand(IntEnum):
     """Values written to PARAM_COMMAND."""
 
     OPEN_STAGING = 1
-    """Copy live into staging, forget what was written, clear STAGED_LENGTH and STAGED_CRC32."""
+    """Copy live into staging (geometry and block), forget what was written, clear STAGED_LENGTH and the CRCs."""
     COMMIT = 2
     """Check the staged set and swap it in atomically; the previous live set becomes the backup."""
     ROLLBACK = 3
@@ -166,6 +200,8 @@ class ParamStatus(IntEnum):
     CAPABILITY_VIOLATION = 7
     NO_BACKUP = 8
     NOT_SUPPORTED = 9
+    """A command or a compensation term this controller cannot carry out (e.g. a compliance without a force
+    reading)."""
     NO_COMMAND = 0xFFFF
 
 

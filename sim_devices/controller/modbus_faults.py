@@ -39,6 +39,7 @@ class ModbusFaultInjector:
         self._lock = threading.Lock()
         self._rules: list[_ExceptionRule] = []
         self._corrupt_writes = 0
+        self._corrupt_skip = 0
         self._drop_in: int | None = cfg.drop_after_writes
         self._drop_execute = cfg.execute_dropped_write
         self._always: ModbusExceptionCode | None = (
@@ -70,10 +71,12 @@ class ModbusFaultInjector:
         with self._lock:
             self._rules.append(_ExceptionRule(code, count, function, address, skip))
 
-    def corrupt_next_write(self, count: int = 1) -> None:
-        """Flip the lowest bit of the first value of the next ``count`` FC16 requests (a flaky link/firmware)."""
+    def corrupt_next_write(self, count: int = 1, *, skip: int = 0) -> None:
+        """Flip the lowest bit of the first value of ``count`` FC16 requests, after letting ``skip`` through (a flaky
+        link or firmware)."""
         with self._lock:
             self._corrupt_writes += count
+            self._corrupt_skip = skip
 
     def exception_always(self, code: ModbusExceptionCode | None) -> None:
         """Answer every request with this exception (None: back to normal)."""
@@ -106,6 +109,9 @@ class ModbusFaultInjector:
                         self._rules.remove(rule)
                     return FaultAction("exception", rule.code)
             if request.function == WRITE_MULTIPLE and self._corrupt_writes > 0:
+                if self._corrupt_skip > 0:
+                    self._corrupt_skip -= 1
+                    return FaultAction()
                 self._corrupt_writes -= 1
                 return FaultAction("corrupt")
             return FaultAction()

@@ -14,15 +14,20 @@ from dataclasses import dataclass, field
 
 import structlog
 
+from hilcal.protocols.compensation import COMP_BACKUP_BANK, COMP_LIVE_BANK, COMP_SAVED_BANK, COMP_STAGING_BANK
 from hilcal.protocols.registers import (
     BACKUP_BANK,
+    BACKUP_COMP_CRC32_REG,
     BACKUP_CRC32_REG,
     CAPABILITIES_REG,
     COMMIT_COUNTER_REG,
     CONTROLLER_STATE_REG,
     FAULT_CODE_REG,
     FIRMWARE_VERSION_REG,
+    LEG_FORCES_REG,
+    LEG_TEMPERATURE_REG,
     LIVE_BANK,
+    LIVE_COMP_CRC32_REG,
     LIVE_CRC32_REG,
     MAGIC,
     MAGIC_REG,
@@ -30,20 +35,23 @@ from hilcal.protocols.registers import (
     PARAM_STATUS_REG,
     PARAMETER_COUNT,
     PARAMETER_COUNT_REG,
-    PROTOCOL_VERSION,
     PROTOCOL_VERSION_REG,
     SAVE_COUNTER_REG,
     SAVED_BANK,
+    SAVED_COMP_CRC32_REG,
     SAVED_CRC32_REG,
     SERIAL_NUMBER_REG,
+    STAGED_COMP_CRC32_REG,
     STAGED_CRC32_REG,
     STAGED_LENGTH_REG,
     STAGED_WRITTEN_REG,
     STAGING_BANK,
+    Capability,
     ModbusExceptionCode,
     ParamCommand,
     Register,
     split_u32,
+    words_from_floats,
 )
 from sim_devices.controller.modbus_faults import ModbusFaultInjector
 from sim_devices.controller.modbus_frames import (
@@ -58,7 +66,8 @@ from sim_devices.controller.modbus_frames import (
     exception_pdu,
     parse_mbap,
 )
-from sim_devices.controller.state_machine import SimulatedController, StagingWriteRefused
+from sim_devices.controller.parameter_banks import StagingWriteRefused
+from sim_devices.controller.state_machine import SimulatedController
 
 log = structlog.get_logger(__name__)
 
@@ -76,7 +85,7 @@ class ControllerRegisterMap:
 
         self._readers: list[tuple[Register, Callable[[], list[int]]]] = [
             (MAGIC_REG, lambda: [MAGIC]),
-            (PROTOCOL_VERSION_REG, lambda: [PROTOCOL_VERSION]),
+            (PROTOCOL_VERSION_REG, lambda: [c.protocol_version]),
             (FIRMWARE_VERSION_REG, lambda: [cfg.firmware_version]),
             (SERIAL_NUMBER_REG, lambda: split_u32(cfg.serial_number)),
             (CAPABILITIES_REG, lambda: [int(c.capabilities)]),
@@ -98,6 +107,24 @@ class ControllerRegisterMap:
             (BACKUP_BANK, lambda: c.bank_words("backup")),
             (SAVED_BANK, lambda: c.bank_words("saved")),
         ]
+        caps = c.capabilities
+        if Capability.COMPENSATION in caps:
+            self._readers += [
+                (STAGED_COMP_CRC32_REG, lambda: [c.param_registers()["staged_comp_crc_hi"],
+                                                 c.param_registers()["staged_comp_crc_lo"]]),
+                (LIVE_COMP_CRC32_REG, lambda: split_u32(c.comp_crc32("live"))),
+                (BACKUP_COMP_CRC32_REG, lambda: split_u32(c.comp_crc32("backup"))),
+                (SAVED_COMP_CRC32_REG, lambda: split_u32(c.comp_crc32("saved"))),
+                (COMP_LIVE_BANK, lambda: c.comp_words("live")),
+                (COMP_STAGING_BANK, lambda: c.comp_words("staging")),
+                (COMP_BACKUP_BANK, lambda: c.comp_words("backup")),
+                (COMP_SAVED_BANK, lambda: c.comp_words("saved")),
+            ]
+        if Capability.FORCE_READING in caps:
+            self._readers.append((LEG_FORCES_REG, lambda: words_from_floats(c.leg_forces_reading().tolist())))
+        if Capability.TEMPERATURE_READING in caps:
+            self._readers.append((LEG_TEMPERATURE_REG, lambda: words_from_floats([c.temperature_reading()])))
+        self._comp_writable = Capability.COMPENSATION in caps
 
     def read(self, address: int, count: int) -> list[int]:
         """Values of ``count`` registers from ``address``; ILLEGAL_DATA_ADDRESS if any is unmapped."""
@@ -125,11 +152,18 @@ class ControllerRegisterMap:
                 raise ModbusError(ModbusExceptionCode.ILLEGAL_DATA_VALUE, f"unknown command {values[0]}") from None
             c.param_command(command)
             return
-        if STAGED_LENGTH_REG.address <= address and end <= STAGED_CRC32_REG.end:
-            words: list[int | None] = [None] * 3
+        header_end = STAGED_COMP_CRC32_REG.end if self._comp_writable else STAGED_CRC32_REG.end
+        if STAGED_LENGTH_REG.address <= address and end <= header_end:
+            words: list[int | None] = [None] * (STAGED_COMP_CRC32_REG.end - STAGED_LENGTH_REG.address)
             for k, v in enumerate(values):
                 words[address - STAGED_LENGTH_REG.address + k] = v
-            c.write_staging_header(words[0], (words[1], words[2]))
+            c.write_staging_header(words[0], words[1:3], words[3:5])
+            return
+        if self._comp_writable and COMP_STAGING_BANK.address <= address and end <= COMP_STAGING_BANK.end:
+            try:
+                c.write_comp_staging(address - COMP_STAGING_BANK.address, values)
+            except StagingWriteRefused as err:
+                raise ModbusError(ModbusExceptionCode.ILLEGAL_DATA_ADDRESS, str(err)) from None
             return
         if STAGING_BANK.address <= address and end <= STAGING_BANK.end:
             try:

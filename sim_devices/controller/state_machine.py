@@ -18,7 +18,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -34,24 +34,27 @@ from hilcal.protocols.controller_states import (
 )
 from hilcal.protocols.registers import (
     L0_INDEX,
-    L0_REGISTERS,
-    PARAMETER_COUNT,
-    PARAMETER_REGISTERS,
-    REGISTERS_PER_FLOAT,
+    PROTOCOL_VERSION,
+    PROTOCOL_VERSION_1_0,
     Capability,
     ParamCommand,
     ParamStatus,
-    crc32_of_words,
-    floats_from_words,
-    parameter_limit_violations,
-    words_from_floats,
 )
 from hilcal.robot import Robot
+from sim_devices.controller.leg_corrector import LegCorrector
+from sim_devices.controller.parameter_banks import Bank, BankCapabilities, ParameterBanks
 from sim_devices.rig.rig import SimulatedRig
 
 log = structlog.get_logger(__name__)
 
 N_LEGS = 6
+DIRECTION_DEADBAND_MM = 1e-3
+"""A setpoint that moves a leg by less than this keeps the leg's direction of motion (as the compensation block's
+backlash term defines it)."""
+RETARGET_TOLERANCE_MM = 1e-5
+"""After the legs arrive, the block's force terms are evaluated at the reached pose; a target that moves by more
+than this is driven to (the servo loop closes on the corrected length)."""
+MAX_RETARGETS = 5
 
 
 class _Strict(BaseModel):
@@ -119,6 +122,13 @@ class ControllerSimConfig(_Strict):
     repeatability_mm: float = Field(default=0.0, ge=0, le=1.0, description="std of each leg's settle error per "
                                     "setpoint that its transducer does not see (the machine's repeatability), mm")
     repeatability_seed: int = Field(default=0, description="seed of the settle errors")
+    compensation: bool = Field(default=True, description="register map 1.1: a compensation block (reading scale, "
+                               "backlash, compliances, thermal coefficient, stroke table) applied to every setpoint "
+                               "and reported length; False: a 1.0 controller with the geometry only")
+    force_reading: bool = Field(default=True, description="the controller reads each leg's axial force (pressure "
+                                "sensors), so it can apply compliance terms (needs compensation)")
+    temperature_reading: bool = Field(default=True, description="the controller reads the leg temperature, so it "
+                                      "can apply a thermal coefficient (needs compensation)")
 
 
 @dataclass(frozen=True)
@@ -133,24 +143,6 @@ class ControllerSnapshot:
     setpoint_tag: int
     setpoint_valid: bool
     fault_events: int
-
-
-class StagingWriteRefused(Exception):
-    """A staging write the controller's capabilities do not allow (mapped to a Modbus exception)."""
-
-
-@dataclass
-class _ParameterBanks:
-    live: np.ndarray
-    saved: np.ndarray
-    backup: np.ndarray | None = None
-    staging: list[int] = field(default_factory=list)
-    written: set[int] = field(default_factory=set)
-    staged_length: int = 0
-    staged_crc_words: list[int] = field(default_factory=lambda: [0, 0])
-    status: ParamStatus = ParamStatus.NO_COMMAND
-    commit_counter: int = 0
-    save_counter: int = 0
 
 
 class SimulatedController:
@@ -173,8 +165,17 @@ class SimulatedController:
         self._stroke_min_mm = lo - robot.l0
         self._stroke_max_mm = hi - robot.l0
         nominal = np.concatenate([robot.a.ravel(), robot.b.ravel(), robot.l0]).astype(np.float32)
-        self._banks = _ParameterBanks(live=nominal.copy(), saved=nominal.copy())
-        self._banks.staging = words_from_floats(nominal.tolist())
+        cfg = self.config
+        self._banks = ParameterBanks(live=nominal.copy(), saved=nominal.copy(), capabilities=BankCapabilities(
+            offsets_only=cfg.capabilities == "offsets_only", compensation=cfg.compensation,
+            force_reading=cfg.compensation and cfg.force_reading,
+            temperature_reading=cfg.compensation and cfg.temperature_reading))
+        self._corrector: tuple[int, LegCorrector | None] = (-1, None)
+        self._direction = rig.motion_direction()
+        self._force_kn = np.zeros(N_LEGS)
+        self._temperature_c = 20.0
+        self._setpoint_mm = np.full(N_LEGS, np.nan)
+        self._retargets = 0
         self._settle_rng = np.random.default_rng([self.config.repeatability_seed, 0x5E771E])
         self._settle_error_mm = np.zeros(N_LEGS)
         self._stroke_mm = rig.reported_lengths() - self._l0_nominal
@@ -196,13 +197,66 @@ class SimulatedController:
 
     @property
     def capabilities(self) -> Capability:
-        base = Capability.NONVOLATILE_SAVE | Capability.ROLLBACK
-        if self.config.capabilities == "full":
-            return base | Capability.FULL_GEOMETRY
-        return base | Capability.OFFSETS_ONLY
+        caps = Capability.NONVOLATILE_SAVE | Capability.ROLLBACK
+        caps |= Capability.FULL_GEOMETRY if self.config.capabilities == "full" else Capability.OFFSETS_ONLY
+        bank = self._banks.capabilities
+        if bank.compensation:
+            caps |= Capability.COMPENSATION
+        if bank.force_reading:
+            caps |= Capability.FORCE_READING
+        if bank.temperature_reading:
+            caps |= Capability.TEMPERATURE_READING
+        return caps
+
+    @property
+    def protocol_version(self) -> int:
+        return PROTOCOL_VERSION if self.config.compensation else PROTOCOL_VERSION_1_0
 
     def _l0_ctrl(self) -> np.ndarray:
         return self._banks.live[L0_INDEX:].astype(float)
+
+    def _live_corrector(self) -> LegCorrector | None:
+        """The live compensation block (None when it corrects nothing), decoded once per bank change."""
+        if self._corrector[0] != self._banks.version:
+            corrector = LegCorrector(self._banks.live_block())
+            self._corrector = (self._banks.version, corrector if corrector.active else None)
+        return self._corrector[1]
+
+    def _read_sensors(self, corrector: LegCorrector) -> None:
+        """Sample the force and temperature readings the block's terms use (at the platform's pose now)."""
+        if corrector.needs_force:
+            self._force_kn = self._rig.leg_forces_kn()
+        if corrector.needs_temperature:
+            self._temperature_c = self._rig.temperature_c()
+
+    def _reported(self, stroke_mm: np.ndarray) -> np.ndarray:
+        """Leg lengths as reported: l0 + raw stroke, corrected by the live block with the last sensor readings."""
+        corrector = self._live_corrector()
+        if corrector is None:
+            return stroke_mm + self._l0_ctrl()
+        return corrector.length_mm(stroke_mm, self._l0_ctrl(), self._force_kn, self._direction, self._temperature_c)
+
+    def _stroke_target(self, lengths_mm: np.ndarray) -> np.ndarray:
+        """The raw strokes the servo drives to for a setpoint of these (corrected) lengths."""
+        corrector = self._live_corrector()
+        if corrector is None:
+            return lengths_mm - self._l0_ctrl()
+        return corrector.stroke_for(lengths_mm, self._l0_ctrl(), self._force_kn, self._direction, self._temperature_c)
+
+    def _retarget(self) -> None:
+        """Legs at their target: read the sensors at the reached pose and correct the target (the servo loop closes
+        on the corrected length, so a force term evaluated at the pose before the move is refined here)."""
+        corrector = self._live_corrector()
+        if corrector is None or not (corrector.needs_force or corrector.needs_temperature):
+            return
+        if self._retargets >= MAX_RETARGETS or not np.array_equal(self._stroke_mm, self._target_mm):
+            return
+        self._read_sensors(corrector)
+        target = np.clip(self._stroke_target(self._setpoint_mm), self._stroke_min_mm, self._stroke_max_mm)
+        self._retargets += 1
+        if float(np.max(np.abs(target - self._target_mm))) > RETARGET_TOLERANCE_MM:
+            self._target_mm = target
+            self._settled_s = 0.0
 
     def _measured_stroke(self) -> np.ndarray:
         """The transducers' reading: the actuators' position less the settle error they do not see."""
@@ -223,6 +277,8 @@ class SimulatedController:
             self._stroke_mm = stroke
             self._rig.move_to_lengths(np.clip(self._stroke_mm + self._settle_error_mm + self._l0_nominal,
                                           *self.robot.leg_limits))
+        if self._state is ControllerState.MOVING:
+            self._retarget()
         if all(self._in_position()):
             self._settled_s += max(0.0, dt_s - arrive_s)
             if self._state is ControllerState.MOVING and self._settled_s >= self.config.settle_s:
@@ -260,7 +316,7 @@ class SimulatedController:
                 state=self._state,
                 fault=self._fault,
                 estop_input=self._estop_input,
-                lengths_mm=self._measured_stroke() + self._l0_ctrl(),
+                lengths_mm=self._reported(self._measured_stroke()),
                 in_position=in_position,
                 setpoint_tag=self._setpoint_tag,
                 setpoint_valid=self._setpoint_valid,
@@ -307,11 +363,23 @@ class SimulatedController:
             reason = refusal_reason(self._state, Command.SETPOINT)
             if reason is not RefusalReason.ACCEPTED:
                 return reason
-            stroke = target - self._l0_ctrl()
-            if not (np.isfinite(stroke).all() and (stroke >= self._stroke_min_mm).all()
-                    and (stroke <= self._stroke_max_mm).all()):
+            if not np.isfinite(target).all():
                 log.info("setpoint_refused", lengths_mm=target.tolist())
                 return RefusalReason.SETPOINT_OUT_OF_LIMITS
+            corrector = self._live_corrector()
+            direction = self._direction
+            if corrector is not None:
+                step = target - self._reported(self._measured_stroke())
+                direction = np.where(np.abs(step) >= DIRECTION_DEADBAND_MM, np.sign(step), self._direction)
+                self._read_sensors(corrector)
+            previous, self._direction = self._direction, direction
+            stroke = self._stroke_target(target)
+            if not ((stroke >= self._stroke_min_mm).all() and (stroke <= self._stroke_max_mm).all()):
+                self._direction = previous
+                log.info("setpoint_refused", lengths_mm=target.tolist())
+                return RefusalReason.SETPOINT_OUT_OF_LIMITS
+            self._setpoint_mm = target
+            self._retargets = 0
             self._stroke_mm = self._measured_stroke()
             if self.config.repeatability_mm > 0:
                 self._settle_error_mm = self._settle_rng.normal(0.0, self.config.repeatability_mm, N_LEGS)
@@ -361,25 +429,20 @@ class SimulatedController:
 
     def install_parameters(self, values: Sequence[float]) -> None:
         """Service-tool path for simulator set-up: replace live and saved sets without a transaction."""
-        v = np.asarray(values, dtype=np.float32)
-        if v.shape != (PARAMETER_COUNT,) or parameter_limit_violations(v.tolist()):
-            raise ValueError(f"not a valid {PARAMETER_COUNT}-value parameter set")
         with self._lock:
-            self._banks.live = v.copy()
-            self._banks.saved = v.copy()
-            self._banks.backup = None
+            self._banks.install(values)
 
     def restore_banks(self, live: Sequence[float], saved: Sequence[float], backup: Sequence[float] | None,
-                      commit_counter: int, save_counter: int) -> None:
+                      commit_counter: int, save_counter: int, comp: dict[str, list[int] | None] | None = None
+                      ) -> None:
         """Put back parameter banks kept outside the process (non-volatile state across a restart)."""
         with self._lock:
-            b = self._banks
-            b.live = np.asarray(live, dtype=np.float32)
-            b.saved = np.asarray(saved, dtype=np.float32)
-            b.backup = None if backup is None else np.asarray(backup, dtype=np.float32)
-            b.staging = words_from_floats(b.live.tolist())
-            b.commit_counter = commit_counter
-            b.save_counter = save_counter
+            self._banks.restore(live, saved, backup, commit_counter, save_counter, comp)
+
+    @property
+    def banks_version(self) -> int:
+        """Changes whenever a live, backup or saved bank does."""
+        return self._banks.version
 
     def live_parameters(self) -> np.ndarray:
         with self._lock:
@@ -393,21 +456,39 @@ class SimulatedController:
         with self._lock:
             return self._banks.saved.astype(float)
 
-    def bank_words(self, bank: Literal["live", "backup", "saved", "staging"]) -> list[int]:
-        """A bank as 84 registers (ABCD float32); a missing backup reads as zeros."""
+    def live_compensation(self) -> dict:
+        """The live compensation block, decoded (hilcal.protocols.compensation's layout)."""
         with self._lock:
-            if bank == "staging":
-                return list(self._banks.staging)
-            values = getattr(self._banks, bank)
-            if values is None:
-                return [0] * PARAMETER_REGISTERS
-            return words_from_floats(values.tolist())
+            return self._banks.live_block()
+
+    def bank_words(self, bank: Bank) -> list[int]:
+        """A geometry bank as 84 registers (ABCD float32); a missing backup reads as zeros."""
+        with self._lock:
+            return self._banks.words(bank)
 
     def bank_crc32(self, bank: Literal["live", "backup", "saved"]) -> int:
         with self._lock:
-            if bank == "backup" and self._banks.backup is None:
-                return 0
-            return crc32_of_words(self.bank_words(bank))
+            return self._banks.crc32(bank)
+
+    def comp_words(self, bank: Bank) -> list[int]:
+        """A compensation bank as registers; a missing backup reads as zeros."""
+        with self._lock:
+            return self._banks.comp_words(bank)
+
+    def comp_crc32(self, bank: Literal["live", "backup", "saved"]) -> int:
+        with self._lock:
+            return self._banks.comp_crc32(bank)
+
+    def leg_forces_reading(self) -> np.ndarray:
+        """The axial leg compressions (kN) the controller reads now (its pressure sensors: the rig's statics)."""
+        with self._lock:
+            self._update()
+            return self._rig.leg_forces_kn()
+
+    def temperature_reading(self) -> float:
+        """The leg temperature (°C) the controller reads now."""
+        with self._lock:
+            return self._rig.temperature_c()
 
     def param_registers(self) -> dict[str, int]:
         """Status, counters and staging header as register values."""
@@ -417,86 +498,38 @@ class SimulatedController:
                 "status": int(b.status),
                 "commit_counter": b.commit_counter & 0xFFFF,
                 "save_counter": b.save_counter & 0xFFFF,
-                "staged_written": len(b.written),
+                "staged_written": len(b.written) + len(b.comp_written),
                 "staged_length": b.staged_length,
                 "staged_crc_hi": b.staged_crc_words[0],
                 "staged_crc_lo": b.staged_crc_words[1],
+                "staged_comp_crc_hi": b.staged_comp_crc_words[0],
+                "staged_comp_crc_lo": b.staged_comp_crc_words[1],
             }
 
     def write_staging(self, offset: int, words: Sequence[int]) -> None:
         """Write registers into the staging bank (offset in registers); offsets-only allows the l0 part only."""
-        if offset < 0 or offset + len(words) > PARAMETER_REGISTERS:
-            raise StagingWriteRefused(f"staging offset {offset}+{len(words)} is outside 0..{PARAMETER_REGISTERS}")
-        l0_start = L0_INDEX * REGISTERS_PER_FLOAT
-        if self.config.capabilities == "offsets_only" and offset < l0_start:
-            raise StagingWriteRefused("offsets-only controller: a/b staging registers are read-only")
         with self._lock:
-            for k, w in enumerate(words):
-                self._banks.staging[offset + k] = int(w) & 0xFFFF
-                self._banks.written.add(offset + k)
+            self._banks.write_staging(offset, words)
 
-    def write_staging_header(self, length: int | None = None, crc_words: Sequence[int | None] = (None, None)) -> None:
-        """Set STAGED_LENGTH and/or the two STAGED_CRC32 words (None leaves a value unchanged)."""
+    def write_comp_staging(self, offset: int, words: Sequence[int]) -> None:
+        """Write registers into the compensation staging bank (offset in registers)."""
         with self._lock:
-            if length is not None:
-                self._banks.staged_length = int(length) & 0xFFFF
-            for k, w in enumerate(crc_words):
-                if w is not None:
-                    self._banks.staged_crc_words[k] = int(w) & 0xFFFF
+            self._banks.write_comp_staging(offset, words)
+
+    def write_staging_header(self, length: int | None = None, crc_words: Sequence[int | None] = (None, None),
+                             comp_crc_words: Sequence[int | None] = (None, None)) -> None:
+        """Set STAGED_LENGTH, the two STAGED_CRC32 and the two STAGED_COMP_CRC32 words (None: unchanged)."""
+        with self._lock:
+            self._banks.write_header(length, crc_words, comp_crc_words)
 
     def param_command(self, command: ParamCommand) -> ParamStatus:
         """OPEN_STAGING / COMMIT / ROLLBACK / SAVE; every command needs the controller DISABLED."""
         with self._lock:
             self._update()
-            status = self._param_command(command)
+            if self._state is not ControllerState.DISABLED:
+                status = ParamStatus.NOT_DISABLED
+            else:
+                status = self._banks.command(command)
             self._banks.status = status
             log.info("param_command", command=command.name, status=status.name)
             return status
-
-    def _param_command(self, command: ParamCommand) -> ParamStatus:
-        b = self._banks
-        if self._state is not ControllerState.DISABLED:
-            return ParamStatus.NOT_DISABLED
-        if command is ParamCommand.OPEN_STAGING:
-            b.staging = words_from_floats(b.live.tolist())
-            b.written.clear()
-            b.staged_length = 0
-            b.staged_crc_words = [0, 0]
-            return ParamStatus.OK
-        if command is ParamCommand.SAVE:
-            b.saved = b.live.copy()
-            b.save_counter += 1
-            return ParamStatus.OK
-        if command is ParamCommand.ROLLBACK:
-            if b.backup is None:
-                return ParamStatus.NO_BACKUP
-            b.live, b.backup = b.backup, b.live
-            b.commit_counter += 1
-            return ParamStatus.OK
-        return self._commit()
-
-    def _commit(self) -> ParamStatus:
-        b = self._banks
-        l0_start = L0_INDEX * REGISTERS_PER_FLOAT
-        offsets_only = self.config.capabilities == "offsets_only"
-        required = set(range(l0_start, l0_start + L0_REGISTERS)) if offsets_only else set(range(PARAMETER_REGISTERS))
-        if not required <= b.written:
-            return ParamStatus.INCOMPLETE_STAGING
-        if b.staged_length != len(b.written):
-            return ParamStatus.LENGTH_MISMATCH
-        if crc32_of_words(b.staging) != (b.staged_crc_words[0] << 16 | b.staged_crc_words[1]):
-            return ParamStatus.CRC_MISMATCH
-        values = np.asarray(floats_from_words(b.staging), dtype=np.float32)
-        if not np.isfinite(values).all():
-            return ParamStatus.NOT_FINITE
-        if parameter_limit_violations(values.tolist()):
-            return ParamStatus.LIMIT_VIOLATION
-        if offsets_only and not np.array_equal(values[:L0_INDEX], b.live[:L0_INDEX]):
-            return ParamStatus.CAPABILITY_VIOLATION
-        b.backup, b.live = b.live, values
-        b.commit_counter += 1
-        b.written.clear()
-        b.staged_length = 0
-        b.staged_crc_words = [0, 0]
-        log.info("parameters_committed", crc32=hex(crc32_of_words(words_from_floats(values.tolist()))))
-        return ParamStatus.OK

@@ -135,13 +135,17 @@ def new_set(robot: Robot) -> np.ndarray:
 def test_identity_and_capabilities(make_mb: Callable[..., MbRig]) -> None:
     full = make_mb(serial_number=0x12345678, firmware_version=0x0203)
     identity = full.params.read_identity()
-    assert (identity.magic, identity.protocol_version, identity.firmware_version) == (0x4843, 0x0100, 0x0203)
+    assert (identity.magic, identity.protocol_version, identity.firmware_version) == (0x4843, 0x0101, 0x0203)
     assert identity.serial_number == 0x12345678 and identity.parameter_count == 42
-    assert int(identity.capabilities) == 0x1 | 0x4 | 0x8 and not identity.offsets_only
+    assert int(identity.capabilities) == 0x1 | 0x4 | 0x8 | 0x10 | 0x20 | 0x40 and not identity.offsets_only
+    assert identity.compensation
     assert full.raw.read(0x0003, 2) == [0x1234, 0x5678]
-    limited = make_mb(capabilities="offsets_only")
+    limited = make_mb(capabilities="offsets_only", compensation=False)
     assert limited.raw.read(CAPABILITIES, 1) == [0x2 | 0x4 | 0x8]
-    assert limited.params.read_identity().offsets_only
+    assert limited.raw.read(0x0001, 1) == [0x0100]
+    assert limited.params.read_identity().offsets_only and not limited.params.read_identity().compensation
+    bare = make_mb(force_reading=False, temperature_reading=False)
+    assert bare.raw.read(CAPABILITIES, 1) == [0x1 | 0x4 | 0x8 | 0x10]
 
 
 def test_live_set_is_float32_abcd_in_documented_order(mb: MbRig, robot: Robot) -> None:
