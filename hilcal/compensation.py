@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from hilcal.error_models import pose_difference
+from hilcal.error_models import GEOMETRIC_42, pose_difference
 from hilcal.identification import IdentificationResult
 from hilcal.kinematics import Geometry, forward_kinematics, inverse_kinematics
 from hilcal.metrics import AccuracySummary
@@ -40,32 +40,34 @@ class Compensation:
     uncompensated: AccuracySummary | None
 
 
-def _true_geometry(robot: Robot, ident: IdentificationResult) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    d = ident.x[:42].reshape(6, 7)
+def _true_geometry(robot: Robot, errors: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    d = np.asarray(errors, dtype=float)[:42].reshape(6, 7)
     return robot.a + d[:, 0:3], robot.b + d[:, 3:6], d[:, 6]
 
 
-def predicted_accuracy(robot: Robot, before: ControllerGeometry, ident: IdentificationResult,
+def predicted_accuracy(robot: Robot, before: ControllerGeometry, errors: np.ndarray,
                        after: ControllerGeometry, poses: np.ndarray) -> AccuracySummary:
-    """Pose error the calibrated model predicts when a controller with `after` commands `poses`."""
-    a_true, b_true, dl0 = _true_geometry(robot, ident)
+    """Pose error the calibrated model (its 42 errors) predicts when a controller with `after` commands `poses`."""
+    a_true, b_true, dl0 = _true_geometry(robot, errors)
     setpoints = inverse_kinematics(after.ik_geometry(), poses)
     geometric = setpoints - after.l0 + before.l0 + dl0
     reached = forward_kinematics(Geometry(a_true, b_true), geometric, poses)
     return AccuracySummary.of(reached, poses)
 
 
-def compensate(robot: Robot, before: ControllerGeometry, ident: IdentificationResult, offsets_only: bool,
-               sample_poses: np.ndarray) -> Compensation:
-    """Parameters to upload, and the accuracy the identified model predicts over `sample_poses`.
+def compensate(robot: Robot, before: ControllerGeometry, ident: IdentificationResult | np.ndarray,
+               offsets_only: bool, sample_poses: np.ndarray) -> Compensation:
+    """Parameters to upload for an identification (or its 42 geometric errors), and the accuracy that model
+    predicts over `sample_poses`.
 
     With offsets only, a and b stay as they are and l0 minimizes the predicted pose errors (position in
     mm, rotation as mm at the platform radius) over the samples; what remains is reported as uncompensated.
     """
-    a_true, b_true, dl0 = _true_geometry(robot, ident)
+    errors = ident.x[:42] if isinstance(ident, IdentificationResult) else np.asarray(ident, dtype=float)[:42]
+    a_true, b_true, dl0 = _true_geometry(robot, errors)
     full = ControllerGeometry(a_true, b_true, before.l0 + dl0)
     if not offsets_only:
-        return Compensation("full", full, predicted_accuracy(robot, before, ident, full, sample_poses), None)
+        return Compensation("full", full, predicted_accuracy(robot, before, errors, full, sample_poses), None)
     lc = robot.characteristic_length_mm
 
     def residual(l0: np.ndarray) -> np.ndarray:
@@ -76,18 +78,25 @@ def compensate(robot: Robot, before: ControllerGeometry, ident: IdentificationRe
 
     best = least_squares(residual, before.l0 + dl0, method="lm").x
     offsets = ControllerGeometry(before.a, before.b, best)
-    predicted = predicted_accuracy(robot, before, ident, offsets, sample_poses)
+    predicted = predicted_accuracy(robot, before, errors, offsets, sample_poses)
     return Compensation("offsets_only", offsets, predicted, predicted)
+
+
+def bound_violations(errors: np.ndarray, joint_bound_mm: float = 10.0, offset_bound_mm: float = 20.0) -> list[str]:
+    """The 42 geometric errors beyond physically plausible bounds (joint errors, leg-offset errors), as reasons."""
+    problems = []
+    for name, value in zip(GEOMETRIC_42.names, np.asarray(errors, dtype=float)[:42], strict=True):
+        bound = offset_bound_mm if name.endswith("dl0_mm") else joint_bound_mm
+        if not abs(value) <= bound:
+            problems.append(f"{name} = {value:+.3f} mm exceeds the plausible ±{bound} mm")
+    return problems
 
 
 def plausibility(ident: IdentificationResult, joint_bound_mm: float = 10.0, offset_bound_mm: float = 20.0
                  ) -> list[str]:
     """Reasons to refuse an identified set: non-convergence, or errors beyond physically plausible bounds."""
     problems = [] if ident.converged else [f"identification did not converge: {ident.message}"]
-    for name, value in zip(ident.names[:42], ident.x[:42], strict=True):
-        bound = offset_bound_mm if name.endswith("dl0_mm") else joint_bound_mm
-        if not abs(value) <= bound:
-            problems.append(f"{name} = {value:+.3f} mm exceeds the plausible ±{bound} mm")
+    problems += bound_violations(ident.x[:42], joint_bound_mm, offset_bound_mm)
     if ident.std_errors is not None:
         bad = [n for n, s in zip(ident.names[:42], ident.std_errors[:42], strict=True) if not np.isfinite(s)]
         if bad:

@@ -1,32 +1,36 @@
 """The calibration procedure as a plain generator of messages (see `procedures.messages`).
 
 Measure the plan's measurement and verification poses on the uncalibrated controller, identify (LS and
-L-infinity on the same rows), check plausibility, compensate (full geometry, or best leg offsets),
-upload after confirmation, then re-measure the verification poses on the compensated controller and, if asked,
-run the ISO 9283 acceptance test (``procedures.acceptance``) on it. Poses already in the journal are skipped, so a
-resumed run continues where it stopped.
+L-infinity on the same rows), diagnose the missing physics (``procedures.physics``), check plausibility, compensate
+(full geometry, or best leg offsets, with the compensation block where the controller has one), upload after
+confirmation, then re-measure the verification poses on the compensated controller and, if asked, run the ISO 9283
+acceptance test (``procedures.acceptance``) on it. Poses already in the journal are skipped, so a resumed run
+continues where it stopped.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Generator
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from drivers.controller_modbus import ParameterSet
-from hilcal.acceptance.uncertainty import model_uncertainty
+from drivers.controller_modbus import CompensationBlock, ParameterSet
 from hilcal.calibration import CalibrationOutcome, calibrate
-from hilcal.compensation import Compensation, ControllerGeometry, compensate, plausibility
+from hilcal.compensation import Compensation, ControllerGeometry, compensate
 from hilcal.kinematics import forward_kinematics, inverse_kinematics
+from hilcal.leg_compensation import LegCompensation
 from hilcal.planning import design
+from hilcal.protocols.registers import Capability
 from hilcal.recording import Recording, recording_from_arrays
 from hilcal.robot import Robot
 from procedures import messages as m
 from procedures.acceptance import ACCEPTANCE_PHASE, AcceptanceTest
+from procedures.approval import approval_detail
+from procedures.physics import ControllerInfo, PhysicsDecision, decide
 from procedures.plan import CalibrationPlan, return_waypoints, waypoints
-from procedures.records import parameter_diff
 
 PRE_PHASES = ("measure", "verify")
 AFTER_PHASE = "verify_after"
@@ -42,6 +46,8 @@ class RunOptions:
     joint_bound_mm: float = 10.0
     offset_bound_mm: float = 20.0
     acceptance: AcceptanceTest | None = None
+    physics: bool = True
+    """Diagnose the run's own recording and upload what it finds with the geometry (False: the geometry alone)."""
 
 
 @dataclass
@@ -56,6 +62,9 @@ class ProcedureResult:
     upload: dict | None = None
     after_rows: list[dict] = field(default_factory=list)
     acceptance_rows: list[dict] = field(default_factory=list)
+    physics: PhysicsDecision | None = None
+    block: CompensationBlock | None = None
+    """The compensation block uploaded with the geometry (None: the controller kept its own)."""
 
 
 def controller_geometry(params: ParameterSet) -> ControllerGeometry:
@@ -64,6 +73,24 @@ def controller_geometry(params: ParameterSet) -> ControllerGeometry:
 
 def to_parameter_set(geom: ControllerGeometry) -> ParameterSet:
     return ParameterSet(a_mm=geom.a.tolist(), b_mm=geom.b.tolist(), l0_mm=geom.l0.tolist())
+
+
+def to_block(comp: LegCompensation) -> CompensationBlock:
+    """The controller's compensation block for these terms (validated as the controller would)."""
+    return CompensationBlock.from_block(comp.to_json())
+
+
+def controller_info(before: ParameterSet, info: dict) -> ControllerInfo:
+    """What the journaled ReadParams says about the controller (runs journaled before register map 1.1 included)."""
+    caps = Capability(int(info.get("capabilities", 0)))
+    block = info.get("compensation")
+    return ControllerInfo(np.asarray(before.l0_mm, dtype=float), offsets_only=bool(info["offsets_only"]),
+                          compensation=Capability.COMPENSATION in caps,
+                          force_reading=Capability.FORCE_READING in caps,
+                          temperature_reading=Capability.TEMPERATURE_READING in caps,
+                          live_block=LegCompensation() if block is None else LegCompensation.from_json(block))
+
+
 
 
 def recording_from_rows(rows: list[dict], robot: Robot) -> Recording:
@@ -93,34 +120,6 @@ def identification_summary(result: ProcedureResult, top: int = 12) -> dict[str, 
                 "std_mm": None if std[i] is None else float(std[i])} for i in order]
     return {"chosen": result.chosen, "estimators": estimators, "largest_parameters": largest,
             "n_parameters": len(chosen.names)}
-
-
-def approval_detail(before: ParameterSet, new: ParameterSet, result: ProcedureResult, robot: Robot,
-                    samples: np.ndarray) -> dict[str, Any]:
-    """What the operator reads before approving the upload: every changed parameter and what can be predicted.
-
-    The prediction is the identified model against the held-out verification poses (measured before the upload,
-    not used in the fit), and the parameters' covariance carried to `samples` (workspace poses). The model against
-    itself (zero for a full upload) predicts nothing and is not shown.
-    """
-    comp = result.compensation
-    assert comp is not None
-    outcome = result.outcomes[result.chosen]
-    ident = outcome.identification
-    spread = None
-    if ident.covariance is not None and ident.model == "42" and np.all(np.isfinite(ident.covariance)):
-        spread = model_uncertainty(robot, ident.covariance, samples).as_json()
-    return {"estimator": result.chosen, "mode": comp.mode, "new_sha256": new.sha256(),
-            "live_sha256": before.sha256(), "diff": parameter_diff(before, new),
-            "measured_before": outcome.before.brief() if outcome.before else None,
-            "predicted_after": outcome.after.brief() if outcome.after else None,
-            "predicted_basis": f"the identified model against the {outcome.n_verify} held-out verification poses "
-                               "(measured before the upload, not used in the fit)",
-            "model_uncertainty": spread,
-            "model_uncertainty_basis": None if spread is None else (
-                f"the {result.chosen} parameters' covariance carried to {len(samples)} workspace poses: expected "
-                "error, 1 sigma (k = 2 doubles it)"),
-            "uncompensated": None if comp.uncompensated is None else comp.uncompensated.brief()}
 
 
 def visit(geom: ControllerGeometry, pose: np.ndarray, target: np.ndarray, plan: CalibrationPlan,
@@ -179,23 +178,34 @@ def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptio
     rec = recording_from_rows((yield m.Recall(PRE_PHASES)), robot)
     result = ProcedureResult("measured", recording=rec, chosen=options.estimator, before_params=before)
     result.outcomes = {est: calibrate(rec, robot, estimator=est) for est in ("ls", "linf")}
-    chosen = result.outcomes[options.estimator].identification
-    result.problems = plausibility(chosen, options.joint_bound_mm, options.offset_bound_mm)
+    controller = controller_info(before, info)
+    physics = decide(rec, robot, result.outcomes[options.estimator], controller, physics=options.physics,
+                     joint_bound_mm=options.joint_bound_mm, offset_bound_mm=options.offset_bound_mm)
+    result.physics = physics
+    result.problems = physics.problems
     if result.problems and not options.force:
         yield m.Disable()
         result.status = "refused"
-        yield m.Checkpoint("refused", {"problems": result.problems, "identification": identification_summary(result)})
+        yield m.Checkpoint("refused", {"problems": result.problems, "findings": physics.findings,
+                                       "identification": identification_summary(result)})
         return result
     samples = design.verification_poses(robot, 64, plan.seed + 1)
-    result.compensation = compensate(robot, geom, chosen, bool(info["offsets_only"]), samples)
+    result.compensation = compensate(robot, geom, physics.geometry_x, controller.offsets_only, samples)
+    if physics.block is not None:
+        params = result.compensation.parameters
+        shifted = ControllerGeometry(params.a, params.b, params.l0 + physics.l0_shift_mm)
+        result.compensation = dataclasses.replace(result.compensation, parameters=shifted)
+        result.block = to_block(physics.block)
     new_params = to_parameter_set(result.compensation.parameters)
+    what = result.compensation.mode.replace("_", " ") + (" and compensation block" if result.block else "")
     yield m.Checkpoint("identified", {"estimator": options.estimator, "mode": result.compensation.mode,
-                                      "problems": result.problems, "identification": identification_summary(result)})
-    yield m.Prompt("upload", f"Upload the {result.compensation.mode.replace('_', ' ')} parameter set "
-                             f"({options.estimator}) to the controller?",
-                   approval_detail(before, new_params, result, robot, samples))
+                                      "problems": result.problems, "physics": physics.to_json(),
+                                      "identification": identification_summary(result)})
+    yield m.Prompt("upload", f"Upload the {what} ({options.estimator}) to the controller?",
+                   approval_detail(before, new_params, result.block, result.compensation,
+                                   result.outcomes[result.chosen], result.chosen, physics, robot, samples))
     yield m.Disable()
-    result.upload = yield m.Upload(new_params, options.save)
+    result.upload = yield m.Upload(new_params, options.save, result.block)
     yield m.Enable()
     pose = yield from _measure_phase(AFTER_PHASE, plan.poses("verify"), result.compensation.parameters, pose, plan)
     if options.acceptance is not None:

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from drivers.controller_modbus import ParameterSet
+from drivers.controller_modbus import CompensationBlock, ParameterSet
 from hilcal.protocols.controller_states import MOTION_STATES, ControllerState
 from procedures import messages as m
 from procedures.journal import Journal
@@ -38,8 +38,16 @@ class RunInterrupted(RuntimeError):
     """The run stopped before completion (abort, device fault, lost device); the journal is kept."""
 
 
-def params_sha256(params: ParameterSet) -> str:
-    return hashlib.sha256(json.dumps(params.model_dump(), sort_keys=True).encode()).hexdigest()
+def params_sha256(params: ParameterSet, compensation: CompensationBlock | None = None) -> str:
+    """The identity of an upload: the parameter set and, when one goes with it, the compensation block."""
+    content = params.model_dump() if compensation is None else {"params": params.model_dump(),
+                                                                 "compensation": compensation.model_dump()}
+    return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
+
+
+def same_block(a: CompensationBlock | None, b: CompensationBlock) -> bool:
+    """The same block up to float32 register rounding."""
+    return a is not None and a.as_float32() == b.as_float32()
 
 
 def same_params(a: ParameterSet, b: ParameterSet, tol_mm: float = 1e-3) -> bool:
@@ -55,8 +63,10 @@ class Engine:
     def __init__(self, devices: Any, journal: Journal, *, confirm: Callable[[str], bool] | None = None,
                  on_measure: Callable[[dict], None] | None = None, move_timeout_s: float = 120.0,
                  observer: EngineObserver | None = None, links: LinksSection | None = None,
-                 approach_mm: float = 0.5) -> None:
+                 approach_mm: float = 0.5, on_prompt: Callable[[m.Prompt], None] | None = None) -> None:
         self.devices = devices
+        self.on_prompt = on_prompt
+        """Called with a prompt before `confirm` asks it (a terminal prints the prompt's detail)."""
         self.move_timeout_s = move_timeout_s
         self.journal = journal
         self.confirm = confirm
@@ -141,6 +151,8 @@ class Engine:
         return handler(msg)
 
     def _on_prompt(self, msg: m.Prompt) -> bool:
+        if self.confirm is not None and self.on_prompt is not None:
+            self.on_prompt(msg)
         answer = True if self.confirm is None else self.confirm(msg.text)
         self.journal.event("prompt", key=msg.key, text=msg.text, answer=answer, unattended=self.confirm is None)
         if not answer:
@@ -153,8 +165,10 @@ class Engine:
         if stored is None:
             identity = self.devices.params.read_identity()
             live = self.devices.params.read_live()
-            stored = {"params": live.model_dump(), "offsets_only": bool(identity.capabilities & 0x2)
-                      and not bool(identity.capabilities & 0x1)}
+            block = self.devices.params.read_live_compensation() if identity.compensation else None
+            stored = {"params": live.model_dump(), "offsets_only": identity.offsets_only,
+                      "capabilities": int(identity.capabilities),
+                      "compensation": None if block is None else block.model_dump()}
             self.journal.set_step(key, stored)
         return ParameterSet.model_validate(stored["params"]), stored
 
@@ -205,28 +219,37 @@ class Engine:
     def _on_checkpoint(self, msg: m.Checkpoint) -> None:
         self.journal.set_step(f"checkpoint:{msg.label}", msg.data or {})
 
+    def _live_pair(self, with_block: bool) -> tuple[ParameterSet, CompensationBlock | None]:
+        client = self.devices.params
+        return client.read_live(), client.read_live_compensation() if with_block else None
+
     def _on_upload(self, msg: m.Upload) -> dict:
-        """Idempotent across a crash: a started upload is settled by reading the live set back."""
+        """Idempotent across a crash: a started upload is settled by reading the live set (and block) back."""
         params: ParameterSet = msg.params
-        sha = params_sha256(params)
+        block: CompensationBlock | None = msg.compensation  # type: ignore[assignment]
+        sha = params_sha256(params, block)
         state = self.journal.step("upload")
         client = self.devices.params
         if state is not None and state["sha256"] == sha and state["outcome"] in ("started", "committed"):
-            live = client.read_live()
-            if same_params(live, params):
+            live, live_block = self._live_pair(block is not None)
+            previous_block = state.get("previous_compensation")
+            if same_params(live, params) and (block is None or same_block(live_block, block)):
                 state = {**state, "outcome": "committed"}
                 self.journal.set_step("upload", state)
-            elif not same_params(live, ParameterSet.model_validate(state["previous"])):
+            elif not (same_params(live, ParameterSet.model_validate(state["previous"])) and (
+                    block is None or previous_block is None or
+                    same_block(live_block, CompensationBlock.model_validate(previous_block)))):
                 raise RunInterrupted("the controller's live set is neither the previous nor the new one: "
                                      "check the controller before going on")
             else:
                 state = None
         if state is None:
-            previous = client.read_live()
-            self.journal.set_step("upload", {"sha256": sha, "outcome": "started", "previous": previous.model_dump()})
-            record = client.upload(params, save=False)
-            state = {"sha256": sha, "outcome": "committed", "previous": previous.model_dump(),
-                     "record": record.model_dump(mode="json")}
+            previous, previous_block = self._live_pair(block is not None)
+            started = {"sha256": sha, "outcome": "started", "previous": previous.model_dump(),
+                       "previous_compensation": None if previous_block is None else previous_block.model_dump()}
+            self.journal.set_step("upload", started)
+            record = client.upload(params, save=False, compensation=block)
+            state = {**started, "outcome": "committed", "record": record.model_dump(mode="json")}
             self.journal.set_step("upload", state)
         if msg.save and state["outcome"] != "saved":
             save_record = client.save()

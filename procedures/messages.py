@@ -23,7 +23,8 @@ class Prompt:
 
 @dataclass(frozen=True)
 class ReadParams:
-    """The controller's live parameter set; journaled under `key`, so a resumed run gets the same answer."""
+    """The controller's live parameter set, its capabilities and (register map 1.1) its live compensation block;
+    journaled under `key`, so a resumed run gets the same answer."""
 
     key: str
 
@@ -79,10 +80,12 @@ class Recall:
 
 @dataclass(frozen=True)
 class Upload:
-    """Transactional parameter upload (staging, CRC, read-back, commit, read-back, save), journaled."""
+    """Transactional parameter upload (staging, CRC, read-back, commit, read-back, save), journaled; with a
+    compensation block (drivers.parameter_sets.CompensationBlock) the block goes in the same transaction."""
 
     params: object
     save: bool
+    compensation: object | None = None
 
 
 @dataclass(frozen=True)

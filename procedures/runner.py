@@ -118,7 +118,7 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
                      out_dir: Path, run_id: str, confirm: Callable[[str], bool] | None,
                      started_at: str, timing: TimingSection | None = None,
                      observer: Callable[[str, dict], None] | None = None, recorder: Any = None,
-                     signoff: Any = None) -> RunExit:
+                     signoff: Any = None, on_prompt: Callable[[Any], None] | None = None) -> RunExit:
     """Run (or continue) the procedure on open devices and write every output; never raises on device faults.
 
     `timing` (the station's) gives the report its estimated against actual machine time; `observer` receives
@@ -136,7 +136,7 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
         with _progress(total, done) as advance:
             engine = Engine(devices, journal, confirm=confirm, on_measure=advance,
                             move_timeout_s=devices.station.motion.move_timeout_s, observer=observer,
-                            links=devices.station.links, approach_mm=plan.approach_mm)
+                            links=devices.station.links, approach_mm=plan.approach_mm, on_prompt=on_prompt)
             result: ProcedureResult = engine.run(calibration_procedure(plan, robot, options))
     except RunInterrupted as e:
         journal.set_status("interrupted")
@@ -155,7 +155,9 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
                                 drift, signed)
     journal.set_status(result.status)
     if result.status != "complete":
-        return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} {result.status}: {'; '.join(result.problems)} "
+        said = "" if result.physics is None or not result.physics.findings else (
+            " The diagnosis of the run's recording: " + " ".join(result.physics.findings))
+        return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} {result.status}: {'; '.join(result.problems)}.{said} "
                        "(nothing uploaded; use --force to upload anyway)", report_path)
     if signed is None:
         return RunExit(EXIT_OK, run_id, f"run {run_id} complete", report_path)
@@ -193,6 +195,11 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
     verify_rows = journal.measurements(("verify",))
     after_rows = result.after_rows
     comp = result.compensation
+    outcome = result.outcomes.get(result.chosen)
+    physics = result.physics
+    held_out = None if physics is None or physics.predicted_with is None else physics.predicted_with
+    if held_out is None and outcome is not None:
+        held_out = outcome.after
     report = RunReport(
         status=result.status, run_id=run_id, uploaded=result.upload is not None, estimator=options.estimator,
         robot_name=robot.name, plan_sha256=plan.sha256(), started_at=started_at,
@@ -208,9 +215,15 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
             "mode": comp.mode,
             "uploaded_parameters": {"a_mm": comp.parameters.a.tolist(), "b_mm": comp.parameters.b.tolist(),
                                     "l0_mm": comp.parameters.l0.tolist()},
-            "predicted": comp.predicted.brief(),
+            "compensation_block": None if result.block is None else result.block.model_dump(),
+            "predicted_held_out": None if held_out is None else held_out.brief(),
+            "predicted_basis": "the uploaded model against the held-out verification poses measured before the "
+                               "upload (not used in the fit); the verification after the upload measures it",
             "uncompensated": None if comp.uncompensated is None else comp.uncompensated.brief(),
+            "uncompensated_basis": None if comp.uncompensated is None else (
+                "what the leg offsets alone cannot correct of the identified geometry, over 64 workspace poses"),
         },
+        physics=None if physics is None else physics.to_json(),
         upload=result.upload,
         machine_time=machine_time,
         links=links_summary(journal),
@@ -266,11 +279,15 @@ class RunRequest:
     """"iso9283": the ISO 9283 acceptance test after the verification (None: no acceptance test)."""
     cycles: int = 30
     """Cycles of the acceptance test (ISO 9283: 30)."""
+    physics: bool = True
+    """Diagnose the run's recording and upload the compensation of what it finds (False: the geometry alone)."""
     sim_station: SimStation | None = None
     timing: TimingSection | None = None
     """The machine's timing for a --sim run (a real run reads the station file's [timing])."""
     on_estimate: Callable[[CalibrationPlan, TimeEstimate, TimingSection], None] | None = None
     """Called with the plan's estimated machine time before anything moves."""
+    on_prompt: Callable[[Any], None] | None = None
+    """Called with a procedure prompt before it is asked at the terminal (prints the upload approval's detail)."""
 
 
 def default_records_path() -> str:
@@ -316,7 +333,8 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
                            "acceptance": None if test is None else test.model_dump(),
                            "robot_path": None if req.robot_path is None else str(req.robot_path),
                            "station_path": None if req.station_path is None else str(req.station_path),
-                           "sim_config": None if req.sim_config is None else str(req.sim_config)}
+                           "sim_config": None if req.sim_config is None else str(req.sim_config),
+                           "physics": req.physics}
                 run_id, plan, options = plan_for_run(journal, plan, None, options)
                 if test is not None:
                     save_acceptance(test, req.out_dir / "acceptance.json")
@@ -345,7 +363,8 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
         except DeviceOpenError as e:
             return RunExit(EXIT_INTERRUPTED, run_id, f"cannot open the station's devices: {e}; the journal is kept, "
                            f"continue with: {resume_command(run_id, req.out_dir)}")
-        run_options = RunOptions(estimator=options["estimator"], force=bool(options["force"]), acceptance=test)
+        run_options = RunOptions(estimator=options["estimator"], force=bool(options["force"]), acceptance=test,
+                                 physics=bool(options.get("physics", True)))
         operator = req.operator or options.get("operator") or settings.operator
         if panel is not None:
             from procedures.panel.control import NotStarted
@@ -365,7 +384,8 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
         signoff = SignoffContext(operator, settings, test, bool(options["sim"]), options["robot_path"],
                                  station.cmm.url)
         result = run_with_devices(devices, journal, plan, robot, run_options, req.out_dir, run_id, confirm,
-                                  started_at, timing, None if panel is None else panel.observer, recorder, signoff)
+                                  started_at, timing, None if panel is None else panel.observer, recorder, signoff,
+                                  None if panel is not None else req.on_prompt)
         _record_outcome(recorder, journal, run_id, operator, result)
         note = record_signoff(recorder, journal, result.report_path, result.certificate_path)
         if note:

@@ -27,6 +27,7 @@ from hilcal.identification import IdentificationResult
 from hilcal.metrics import AccuracySummary, Indicators
 from hilcal.reports.certificate import signoff_html
 from hilcal.reports.drift import drift_html
+from hilcal.reports.physics import physics_html
 from hilcal.reports.timing import time_html
 
 INDICATORS = ("max", "range", "mean", "rms")
@@ -72,6 +73,8 @@ class RunReport:
     """Per link (controller, cmm, modbus): holds, retakes, total and longest hold in s, lost or not."""
     drift: dict | None = None
     """``hilcal.drift.DriftResult.to_json()``: the machine's parameters since its earlier calibrations."""
+    physics: dict | None = None
+    """``procedures.physics.PhysicsDecision.to_json()``: what the run's diagnosis found and the upload corrected."""
     signoff: dict | None = None
     """report.json's sign-off keys (operator, station, machine, software, instrument, environment, method,
     uncertainty, iso9283, certificate): ``procedures.certificate.signoff_section``."""
@@ -198,6 +201,7 @@ def report_json(r: RunReport) -> dict[str, Any]:
         "ls_vs_linf": _ls_vs_linf(r),
         "plausibility": r.plausibility,
         "compensation": r.compensation,
+        "physics": r.physics,
         "upload": r.upload,
         "plan_sha256": r.plan_sha256,
         "robot": {"name": r.robot_name},
@@ -497,6 +501,8 @@ def report_html(r: RunReport) -> str:
 <h2>Least squares against L-infinity</h2>{img(_comparison_plot(r), "LS against L-infinity")}
 <h2>Plausibility</h2><p>{'plausible' if pl.get('ok') else 'NOT plausible'}</p>{limits_html}
 {f'<ul>{violations}</ul>' if violations else ''}
+<h2>Physics: what the run's own recording shows beyond the geometry</h2>
+{physics_html(_jsonable(r.physics), after_brief)}
 <h2>Compensation</h2>{_value_html(_jsonable(r.compensation))}
 <h2>Upload</h2>{_upload_html(r)}
 <h2>Drift since the machine's last calibration</h2>{drift_html(r.drift)}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import enum
 import json
 from pathlib import Path
 from typing import Annotated
@@ -14,6 +15,11 @@ from procedures.cli.records import RecordsOption, open_records
 from procedures.cli.signoff import AcceptanceOption, CyclesOption, ask_operator
 
 
+class PhysicsChoice(enum.StrEnum):
+    on = "on"
+    off = "off"
+
+
 def run(
     out_dir: Annotated[Path, typer.Option("--out", help="run folder: journal, logs, recording, report")],
     sim: Annotated[bool, typer.Option("--sim", help="start the simulated devices and run against them")] = False,
@@ -24,6 +30,9 @@ def run(
     yes: Annotated[bool, typer.Option("--yes", help="unattended: answer every prompt yes")] = False,
     estimator: Annotated[EstimatorChoice, typer.Option(help="parameters to upload")] = EstimatorChoice.ls,
     force: Annotated[bool, typer.Option(help="upload even an implausible parameter set")] = False,
+    physics: Annotated[PhysicsChoice, typer.Option(help="on: diagnose the run's own recording and upload the "
+                                                   "compensation of what it finds with the geometry; off: the "
+                                                   "geometry alone")] = PhysicsChoice.on,
     robot: RobotOption = None,
     plan: Annotated[Path | None, typer.Option(help="re-run a saved plan.json")] = None,
     seed: int = 0,
@@ -56,7 +65,7 @@ def run(
                          yes=yes, estimator=estimator.value, force=force, robot_path=robot, plan_path=plan,
                          seed=seed, records_path=records, operator=operator, sim_station=sim_station, timing=timing,
                          on_estimate=print_run_estimate, acceptance=None if acceptance is None else acceptance.value,
-                         cycles=cycles)
+                         cycles=cycles, physics=physics is PhysicsChoice.on, on_prompt=_print_prompt_detail)
 
     def execute(confirm, session=None):
         result = execute_run(request, confirm, session)
@@ -76,6 +85,15 @@ def run(
     else:
         result = execute(None if yes else (lambda text: typer.confirm(text, default=False)))
     raise typer.Exit(result.code)
+
+
+def _print_prompt_detail(prompt) -> None:
+    """Before the terminal asks to approve the upload: the findings, predictions, block and parameter diff."""
+    if prompt.key == "upload" and prompt.detail:
+        from procedures.approval import approval_lines
+
+        for line in approval_lines(prompt.detail):
+            out.print(line, highlight=False, markup=False, soft_wrap=True)
 
 
 def _params_client(station: Path):

@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from procedures import messages as m
+from procedures.approval import approval_lines
 
 YES = ("y", "yes")
 NO = ("n", "no")
@@ -186,7 +187,7 @@ class OperatorControl:
     def _terminal_text(self, q: Question) -> str:
         lines = [f"\n[panel] {q.text}"]
         if q.kind == "upload" and q.detail:
-            lines += upload_lines(q.detail)
+            lines += approval_lines(q.detail)
         if q.kind == "start":
             lines.append("Type the operator's name and Enter to start" +
                          (f" (Enter alone: {self.operator})" if self.operator else "") + ", or answer on the panel.")
@@ -278,23 +279,3 @@ class OperatorControl:
         except PanelRequestError:
             if not self._paused:
                 raise
-
-
-def upload_lines(detail: dict[str, Any]) -> list[str]:
-    """The approval's parameter diff and predicted improvement as plain text (the terminal's view)."""
-    lines = [f"{'parameter':<14} {'live (mm)':>12} {'new (mm)':>12} {'change (mm)':>12}"]
-    lines += [f"{d['name']:<14} {d['live_mm']:12.4f} {d['new_mm']:12.4f} {d['delta_mm']:+12.4f}"
-              for d in detail.get("diff", [])]
-    before, after = detail.get("measured_before") or {}, detail.get("predicted_after") or {}
-    if before:
-        lines.append(f"verification poses now (measured): max {before['max_position_mm']:.4f} mm, "
-                     f"RMS {before['rms_position_mm']:.4f} mm")
-    if after:
-        lines.append(f"predicted after the upload: max {after['max_position_mm']:.4f} mm, RMS "
-                     f"{after['rms_position_mm']:.4f} mm ({detail.get('predicted_basis', '')})")
-    spread = detail.get("model_uncertainty")
-    if spread:
-        lines.append(f"parameter uncertainty in the workspace: RMS {spread['rms_position_mm']:.4f} mm, worst pose "
-                     f"{spread['max_position_mm']:.4f} mm ({detail.get('model_uncertainty_basis', '')})")
-    lines.append(f"parameter set sha256 {detail.get('new_sha256', '')[:16]}")
-    return lines

@@ -9,9 +9,9 @@ from hilcal.calibration import calibrate
 from hilcal.compensation import ControllerGeometry, compensate
 from hilcal.planning import design
 from hilcal.robot import Robot
-from procedures.calibration_procedure import ProcedureResult, approval_detail, to_parameter_set
+from procedures.approval import approval_detail, approval_lines
+from procedures.calibration_procedure import to_parameter_set
 from procedures.cli.simulated_recording import simulate_recording
-from procedures.panel.control import upload_lines
 from sim_devices.rig.config import RigConfig, load_errors
 
 
@@ -24,13 +24,13 @@ def test_approval_shows_the_held_out_prediction_and_the_parameter_uncertainty(ro
     samples = design.verification_poses(robot, 64, 5)
     comp = compensate(robot, before, outcome.identification, False, samples)
     assert comp.predicted.position_mm.max < 1e-6  # the model against itself: zero by construction, predicts nothing
-    result = ProcedureResult("measured", outcomes={"ls": outcome}, chosen="ls", compensation=comp)
-    detail = approval_detail(to_parameter_set(before), to_parameter_set(comp.parameters), result, robot, samples)
+    detail = approval_detail(to_parameter_set(before), to_parameter_set(comp.parameters), None, comp, outcome, "ls",
+                             None, robot, samples)
     held_out = outcome.after.brief()
     assert detail["predicted_after"] == held_out and held_out["max_position_mm"] > 1e-3
     assert "12 held-out verification poses" in detail["predicted_basis"]
     spread = detail["model_uncertainty"]
     assert spread["n_poses"] == 64 and 0 < spread["rms_position_mm"] <= spread["max_position_mm"] < 0.05
-    lines = "\n".join(upload_lines(detail))
+    lines = "\n".join(approval_lines(detail))
     assert f"predicted after the upload: max {held_out['max_position_mm']:.4f} mm" in lines
     assert f"worst pose {spread['max_position_mm']:.4f} mm" in lines and "0.0000 mm" not in lines

@@ -1,0 +1,111 @@
+"""What the operator reads before approving an upload, as data (the panel's page) and as text (the terminal).
+
+Faults first, then what the upload corrects and what it leaves (``procedures.physics``), the held-out accuracy
+predicted with and without the physics, the compensation block and every changed parameter. The prediction is the
+uploaded model against the held-out verification poses (measured before the upload, not used in the fit) and the
+parameters' covariance carried to workspace poses; the model against itself (zero for a full upload) predicts
+nothing and is not shown.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any
+
+import numpy as np
+
+from drivers.controller_modbus import CompensationBlock, ParameterSet
+from hilcal.acceptance.uncertainty import model_uncertainty
+from hilcal.calibration import CalibrationOutcome
+from hilcal.compensation import Compensation
+from hilcal.reports.physics import physics_lines
+from hilcal.robot import Robot
+from procedures.physics import PhysicsDecision
+from procedures.records import parameter_diff
+
+
+def upload_sha256(params: ParameterSet, block: CompensationBlock | None) -> str:
+    """What the operator approves: the parameter set's registers, and the block's when one goes with it."""
+    if block is None:
+        return params.sha256()
+    return hashlib.sha256(bytes.fromhex(params.sha256()) + bytes.fromhex(block.sha256())).hexdigest()
+
+
+def approval_detail(before: ParameterSet, new: ParameterSet, block: CompensationBlock | None, comp: Compensation,
+                    outcome: CalibrationOutcome, estimator: str, physics: PhysicsDecision | None, robot: Robot,
+                    samples: np.ndarray) -> dict[str, Any]:
+    """Every changed parameter, the block, the physics in sentences and what can be predicted (module docstring)."""
+    ident = outcome.identification
+    covariance, source = ident.covariance if ident.model == "42" else None, f"the {estimator} parameters'"
+    if physics is not None and physics.diagnosis is not None and physics.geometry_source != "the geometric fit":
+        final = physics.diagnosis.final_fit
+        covariance = None if final.covariance is None else final.covariance[:42, :42]
+        source = "the geometry's (fitted together with the effects)"
+    spread = None
+    if covariance is not None and np.all(np.isfinite(covariance)):
+        spread = model_uncertainty(robot, covariance, samples).as_json()
+    predicted = outcome.after if physics is None or physics.predicted_with is None else physics.predicted_with
+    return {"estimator": estimator, "mode": comp.mode, "new_sha256": upload_sha256(new, block),
+            "live_sha256": before.sha256(), "diff": parameter_diff(before, new),
+            "measured_before": outcome.before.brief() if outcome.before else None,
+            "predicted_after": predicted.brief() if predicted else None,
+            "predicted_geometry_only": outcome.after.brief() if outcome.after else None,
+            "physics": None if physics is None else physics.to_json(),
+            "compensation_block": None if block is None else block.model_dump(),
+            "predicted_basis": f"the uploaded model against the {outcome.n_verify} held-out verification poses "
+                               "(measured before the upload, not used in the fit)",
+            "model_uncertainty": spread,
+            "model_uncertainty_basis": None if spread is None else (
+                f"{source} covariance carried to {len(samples)} workspace poses: expected error, 1 sigma (k = 2 "
+                "doubles it)"),
+            "uncompensated": None if comp.uncompensated is None else comp.uncompensated.brief()}
+
+
+def _brief(b: dict[str, float]) -> str:
+    return f"max {b['max_position_mm']:.4f} mm, RMS {b['rms_position_mm']:.4f} mm"
+
+
+def approval_lines(detail: dict[str, Any]) -> list[str]:
+    """The approval as plain text (the terminal's view): findings, predictions, block, then the parameter diff."""
+    physics = detail.get("physics")
+    lines = [f"  - {line}" for line in physics_lines(physics)]
+    if physics and physics.get("enabled", True):
+        lines.insert(0, "What this run's recording shows beyond the geometry (faults first):")
+    before, after = detail.get("measured_before") or {}, detail.get("predicted_after") or {}
+    geometry_only = detail.get("predicted_geometry_only") or {}
+    if before:
+        lines.append(f"verification poses now (measured): {_brief(before)}")
+    if after:
+        lines.append(f"predicted after the upload: {_brief(after)} ({detail.get('predicted_basis', '')})")
+    if physics and physics.get("enabled", True) and geometry_only and geometry_only != after:
+        lines.append(f"predicted with the geometry alone: {_brief(geometry_only)}")
+    spread = detail.get("model_uncertainty")
+    if spread:
+        lines.append(f"parameter uncertainty in the workspace: RMS {spread['rms_position_mm']:.4f} mm, worst pose "
+                     f"{spread['max_position_mm']:.4f} mm ({detail.get('model_uncertainty_basis', '')})")
+    block = detail.get("compensation_block")
+    if block:
+        lines.append("compensation block: " + block_summary(block))
+    lines.append(f"{'parameter':<14} {'live (mm)':>12} {'new (mm)':>12} {'change (mm)':>12}")
+    lines += [f"{d['name']:<14} {d['live_mm']:12.4f} {d['new_mm']:12.4f} {d['delta_mm']:+12.4f}"
+              for d in detail.get("diff", [])]
+    lines.append(f"upload sha256 {detail.get('new_sha256', '')[:16]}")
+    return lines
+
+
+def block_summary(block: dict[str, Any]) -> str:
+    """A compensation block in one line: the non-zero terms per leg."""
+    units = {"scale_ppm": ("scale", "ppm", 1.0), "backlash_mm": ("backlash", "µm", 1000.0),
+             "compliance_mm_per_kn": ("compliance", "µm/kN", 1000.0),
+             "compliance_mm_per_kn_m": ("compliance per metre", "µm/(kN m)", 1000.0),
+             "thermal_ppm_per_k": ("thermal", "ppm/K", 1.0)}
+    parts = []
+    for name, (label, unit, factor) in units.items():
+        values = [float(v) * factor for v in block.get(name, [])]
+        if any(values):
+            parts.append(f"{label} " + ", ".join(f"{v:+.3g}" for v in values) + f" {unit}")
+    points = len((block.get("table_mm") or [[]])[0])
+    if points:
+        amplitude = max(abs(float(v)) for row in block["table_mm"] for v in row) * 1000.0
+        parts.append(f"stroke table of {points} points per leg (up to {amplitude:.1f} µm)")
+    return "; ".join(parts) or "corrects nothing"
