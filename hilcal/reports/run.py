@@ -426,9 +426,12 @@ def _parameters_html(r: RunReport) -> str:
 def _upload_html(r: RunReport) -> str:
     if r.upload is None:
         return "<p>nothing was uploaded to the controller.</p>"
-    u = _jsonable(r.upload)
+    state = _jsonable(r.upload)
+    # a run's journal state ({sha256, outcome, record, ...}) holds the driver's record; a bare record is one itself
+    u = {**state["record"], "outcome": state.get("outcome")} if state.get("record") else state
     keys = ("operation", "outcome", "error", "endpoint", "device_id", "started_at", "finished_at", "offsets_only",
             "params_sha256", "params_crc32", "previous_live_sha256", "previous_live_crc32", "live_after_sha256",
+            "compensation_sha256", "compensation_crc32", "previous_compensation_sha256", "compensation_readback_match",
             "staged_registers", "staging_readback_match", "live_readback_match", "controller_status", "saved",
             "saved_readback_match")
     summary = {k: u.get(k) for k in keys if k in u}

@@ -1,0 +1,97 @@
+"""Physics to the machine: `hilcal run --sim` on a rig with set-up faults and a compliance it does not know of.
+
+The rig's transducers of legs 1 and 4 read 0.30 % long and 0.20 % short (wrong gradients after a replacement) and
+its legs sag 6 µm/kN. The run must diagnose its own recording, upload the geometry fitted with the effects and the
+controller's compensation block in one transaction, and the verification after the upload must measure at the
+machine what the diagnosis predicted. With --physics off the same rig is refused (the geometric fit absorbs the
+faults into joint errors of tens of mm).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hilcal.protocols.compensation import block_from_words
+from tests.cli.sim_speed import INSTANT_SIM
+
+pytestmark = pytest.mark.timeout(300)
+
+RIG = """
+[rig]
+seed = 4
+[rig.effects.sensor_scale]
+enabled = true
+gain_error_ppm = [3000.0, 0.0, 0.0, -2000.0, 0.0, 0.0]
+[rig.effects.leg_compliance]
+enabled = true
+c_mm_per_kn = 0.006
+"""
+
+
+def _start(tmp: Path, name: str, *args: str, stdin: str | None = None) -> subprocess.Popen[str]:
+    env = {**os.environ, "HILCAL_RECORDS": str(tmp / f"{name}.sqlite"), "COLUMNS": "200"}
+    return subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", "--sim", "--operator", "T",
+                             "--sim-config", str(tmp / "sim.toml"), "--out", str(tmp / name), *args],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=env)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[int, str, Path]]:
+    """The same rig seed twice at once: physics on (answered at the terminal) and physics off (unattended)."""
+    tmp = tmp_path_factory.mktemp("physics")
+    (tmp / "sim.toml").write_text(INSTANT_SIM + RIG)
+    procs = {"on": _start(tmp, "on"), "off": _start(tmp, "off", "--yes", "--physics", "off")}
+    out = {}
+    for name, proc in procs.items():
+        stdout, _ = proc.communicate("y\ny\ny\n" if name == "on" else None, timeout=280)
+        out[name] = (proc.returncode, stdout, tmp / name)
+    return out
+
+
+def test_the_run_corrects_the_faults_it_finds_and_proves_it_at_the_machine(runs) -> None:
+    code, stdout, run = runs["on"]
+    assert code == 0, stdout
+    report = json.loads((run / "report.json").read_text())
+    physics = report["physics"]
+    assert physics["problems"] == [] and physics["explained"], "the geometric fit's 30 mm were explained"
+    assert physics["geometry_source"] == "fitted together with the effects"
+    block = report["compensation"]["compensation_block"]
+    # the true reading errors: a gain g reads (1 + g) times the travel, so the correction is -g / (1 + g) of it
+    assert block["scale_ppm"][0] == pytest.approx(-3000 / 1.003, abs=10)
+    assert block["scale_ppm"][3] == pytest.approx(2000 / 0.998, abs=10)
+    assert np.allclose(block["compliance_mm_per_kn"], 0.006, rtol=0.15)
+    measured = report["verification"]["after"]["rms_position_mm"]
+    predicted = physics["predicted_with_physics"]["rms_position_mm"]
+    assert predicted / 1.5 <= measured <= 1.5 * predicted
+    assert measured <= physics["predicted_geometry_only"]["rms_position_mm"] / 5
+    state = json.loads((run / "sim_state.json").read_text())["banks"]
+    words = np.frombuffer(bytes.fromhex(state["comp_live"]), dtype=">u2").tolist()
+    held = block_from_words(words)
+    assert held["scale_ppm"][0] == pytest.approx(block["scale_ppm"][0], abs=1e-3), "the controller holds the block"
+    assert report["upload"]["record"]["compensation_readback_match"] is True
+
+
+def test_the_approval_screen_opens_with_the_findings(runs) -> None:
+    _, stdout, _ = runs["on"]
+    approval = stdout[stdout.index("What this run's recording shows beyond the geometry"):]
+    approval = approval[:approval.index("Upload the full")]
+    assert approval.index("Leg 1 reads 0.30% long") < approval.index("sag under the platform's weight")
+    assert "the upload corrects the reading scale of each leg; check its transducer" in approval
+    assert "predicted after the upload: max" in approval and "predicted with the geometry alone" in approval
+    assert "compensation block: scale -2.99e+03" in approval
+
+
+def test_without_physics_the_same_rig_is_refused(runs) -> None:
+    code, stdout, run = runs["off"]
+    assert code == 3, stdout
+    assert "exceeds the plausible" in stdout and "nothing uploaded" in stdout
+    report = json.loads((run / "report.json").read_text())
+    assert report["uploaded"] is False and report["physics"]["enabled"] is False
