@@ -38,7 +38,7 @@ THRESHOLD_MM = 0.05
 """...and only if it is at least this large: about what a calibrated machine's verification error is, so a
 smaller change would not show in the machine's accuracy."""
 DAYS_PER_MONTH = 30.0
-_NAME = re.compile(r"^leg(\d)_(a|b)_([xyz])_mm$|^leg(\d)_(l0|stroke_at_home)_mm$")
+_NAME = re.compile(r"^leg(\d)_(a|b)_([xyz])_mm$|^leg(\d)_(l0|stroke_at_home|reads_long_at_full_stroke)_mm$")
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,19 @@ def describe(name: str) -> tuple[str, str]:
     leg, which = m.group(4), m.group(5)
     if which == "l0":
         return f"leg {leg} offset", "a transducer or joint moved"
+    if which == "reads_long_at_full_stroke":
+        return (f"leg {leg} reading at full stroke", "its transducer's scale changed between calibrations: a failing "
+                "transducer (or one reconfigured since)")
     return f"leg {leg} stroke at home", "a transducer or joint moved along the leg"
+
+
+def reading_scale_parameters(reads_long_ppm: Sequence[float], std_ppm: Sequence[float], stroke_range_mm: float
+                             ) -> dict[str, tuple[float, float | None]]:
+    """Each leg's transducer scale error as how far it reads long at full stroke (mm, with its standard error):
+    ``leg{i}_reads_long_at_full_stroke_mm``. In mm, so the same rule flags a scale that moved as a joint that did."""
+    return {f"leg{i + 1}_reads_long_at_full_stroke_mm": (float(g) * 1e-6 * stroke_range_mm,
+                                                         float(s) * 1e-6 * stroke_range_mm)
+            for i, (g, s) in enumerate(zip(reads_long_ppm, std_ppm, strict=True))}
 
 
 @dataclass(frozen=True)

@@ -94,13 +94,15 @@ def controller_info(before: ParameterSet, info: dict) -> ControllerInfo:
 
 
 def recording_from_rows(rows: list[dict], robot: Robot) -> Recording:
-    """The journal's pre-calibration rows in the recording format (phase measure/verify, execution order)."""
+    """The journal's pre-calibration rows in the recording format (phase measure/verify, execution order); with the
+    controller's leg temperature at every row when it reads one."""
+    extra = {"sphere_fit_rms_mm": [r["detail"].get("sphere_fit_rms_mm", np.nan) for r in rows]}
+    if rows and all("temp_c" in r["detail"] for r in rows):
+        extra["temp_c"] = [r["detail"]["temp_c"] for r in rows]
     return recording_from_arrays(
         seq=[r["seq"] for r in rows], phase=[r["phase"] for r in rows], time_s=[r["time_s"] for r in rows],
         cmd=np.array([r["cmd"] for r in rows]), legs_mm=np.array([r["legs"] for r in rows]),
-        meas=np.array([r["meas"] for r in rows]),
-        extra={"sphere_fit_rms_mm": [r["detail"].get("sphere_fit_rms_mm", np.nan) for r in rows]},
-        robot=robot, source="<run journal>",
+        meas=np.array([r["meas"] for r in rows]), extra=extra, robot=robot, source="<run journal>",
     )
 
 

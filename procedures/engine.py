@@ -20,6 +20,7 @@ import structlog
 
 from drivers.controller_modbus import CompensationBlock, ParameterSet
 from hilcal.protocols.controller_states import MOTION_STATES, ControllerState
+from hilcal.protocols.registers import Capability
 from procedures import messages as m
 from procedures.journal import Journal
 from procedures.link_guard import LinkGuard, LinksSection
@@ -76,6 +77,7 @@ class Engine:
         self.cmm_alignment = devices.cmm_alignment
         """Where the probe patterns are laid out: the station's alignment, then each pose's registration on the
         base spheres (only a prediction: every pose measures its base spheres again and is computed from them)."""
+        self._reads_temperature: bool | None = None
         self.guard = LinkGuard(devices, journal, links, approach_mm=approach_mm, move_timeout_s=move_timeout_s,
                                publish=self._publish)
 
@@ -198,14 +200,24 @@ class Engine:
     def _on_settle(self, msg: m.Settle) -> None:
         time.sleep(msg.seconds)
 
+    def _leg_temperature_c(self) -> float | None:
+        """The controller's leg-temperature reading (register map 1.1 with TEMPERATURE_READING), else None."""
+        if self._reads_temperature is None:
+            caps = self.devices.params.read_identity().capabilities
+            self._reads_temperature = Capability.TEMPERATURE_READING in caps
+        return self.devices.params.read_temperature_c() if self._reads_temperature else None
+
     def _on_measure(self, msg: m.Measure) -> dict:
         row = self.journal.measurement(msg.phase, msg.index)
         if row is not None:
             return row
+        temperature_c = self._leg_temperature_c()
         legs = np.asarray(self.devices.controller.feedback().lengths_mm, dtype=float)
         pm = self.devices.cmm.measure_pose(self.devices.robot, self.cmm_alignment, expected_pose=np.array(msg.cmd_pose))
         self.cmm_alignment = pm.refined_alignment
         detail = {"sphere_fit_rms_mm": float(np.max(pm.pose_fit.rms_residual_mm))}
+        if temperature_c is not None:
+            detail["temp_c"] = temperature_c
         row = self.journal.add_measurement(msg.phase, msg.index, time.monotonic() - self.t0, np.array(msg.cmd_pose),
                                            legs, np.asarray(pm.pose, dtype=float), detail)
         log.info("measured", phase=msg.phase, index=msg.index)

@@ -132,8 +132,12 @@ def _upload(report: Mapping[str, Any]) -> str:
     if not record:
         return "<p>No parameter set was uploaded in this run.</p>"
     save = upload.get("save_record") or {}
+    block = [] if not record.get("compensation_sha256") else [
+        ("compensation block, SHA-256 (controller registers)", f"<code>{_esc(record.get('compensation_sha256'))}</code>"
+         f" – read back after the commit, matches: {_yes(record.get('compensation_readback_match'))}")]
     return _kv([
         ("uploaded parameter set, SHA-256 (controller registers)", f"<code>{_esc(record.get('params_sha256'))}</code>"),
+        *block,
         ("controller's live set read back after the commit", f"<code>{_esc(record.get('live_after_sha256'))}</code>"
          f" – matches: {_yes(record.get('live_readback_match'))}"),
         ("staging read back before the commit", f"matches: {_yes(record.get('staging_readback_match'))}"),
@@ -141,6 +145,32 @@ def _upload(report: Mapping[str, Any]) -> str:
          f"{_yes(save.get('saved_readback_match') or record.get('saved_readback_match'))}"),
         ("outcome", f"{_esc(upload.get('outcome'))} on {_esc(record.get('endpoint'))} at "
                     f"{_when(record.get('finished_at'))}")])
+
+
+def _compensation(report: Mapping[str, Any]) -> str:
+    """What the upload compensated beyond the geometry, each effect with its values ± standard error, and what it
+    left (the run's physics step)."""
+    physics = report.get("physics") or {}
+    if not physics:
+        return "<p>The geometry alone was identified.</p>"
+    if not physics.get("enabled", True):
+        return "<p>The geometry alone was uploaded (missing physics not diagnosed: --physics off).</p>"
+    rows = []
+    for c in [*physics.get("corrected", []), *physics.get("not_corrected", [])]:
+        values = "; ".join(
+            (f"leg {v['leg']}: " if v.get("leg") else "") + f"{float(v['value']):+.4g} ± {float(v['std_error']):.2g} "
+            f"{_esc(v['unit'])}" for v in c.get("values") or []) or _esc(c.get("sentence"))
+        status = "compensated" if not c.get("why_not") and physics.get("block") else (
+            _esc(c.get("why_not")) or "not compensated: the controller has no compensation block")
+        rows.append(f"<tr><td>{_esc(c.get('title'))}{' (set-up fault)' if c.get('grade') == 'fault' else ''}</td>"
+                    f"<td>{values}</td><td>{status}</td></tr>")
+    table = ("<table><tr><th>effect</th><th>values ± standard error</th><th>in the upload</th></tr>"
+             + "".join(rows) + "</table>") if rows else "<p>Nothing beyond the geometry was found.</p>"
+    by_hand = "".join(f"<div class='warn'>Set by hand: {_esc(t)}</div>" for t in physics.get("by_hand", []))
+    noise = physics.get("noise_mm")
+    source = "" if noise is None else (f"<p class='small'>Noise yardstick: {float(noise) * 1000:.1f} µm RMS pose "
+                                       f"position noise ({_esc(physics.get('noise_source'))}).</p>")
+    return f"<p>Geometry: {_esc(physics.get('geometry_source'))}.</p>{table}{by_hand}{source}"
 
 
 def _software(sw: Mapping[str, Any]) -> str:
@@ -192,6 +222,7 @@ platform, hardware in the loop (hilcal)</div></div>
 <section><h2>ISO 9283 pose accuracy and repeatability (after calibration)</h2>{_iso_table(report.get('iso9283'))}
 </section>
 <section><h2>Verdict</h2>{_verdict(cert)}</section>
+<section><h2>Compensation beyond the geometry</h2>{_compensation(report)}</section>
 <section><h2>Uploaded parameter set</h2>{_upload(report)}</section>
 <section><p class="small">The expanded uncertainties U are the standard uncertainties multiplied by the coverage
 factor k = 2 (GUM), from the CMM's stated uncertainty and the scatter of the poses measured more than once in this run,

@@ -8,15 +8,17 @@ run it finds. Writing is idempotent (run id, upload id), so a run written twice 
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import structlog
 
-from hilcal.drift import Calibration, drift, machine_parameters
+from hilcal.drift import Calibration, drift, machine_parameters, reading_scale_parameters
 from hilcal.robot import Robot
 from procedures.journal import Journal, JournalError
 from procedures.records.database import RecordsError, RecordsUnavailable, describe, records_url
@@ -178,10 +180,22 @@ def where(target: str | Path | None) -> str:
 
 
 def calibration_parameters(result: Any, robot: Robot) -> dict[str, tuple[float, float | None]] | None:
-    """The machine's estimated geometry from a run's ProcedureResult (None before identification)."""
+    """The machine's estimated geometry from a run's ProcedureResult (None before identification): the geometry fitted
+    together with the effects when the run's physics step found any, and each leg's transducer scale error when it
+    was estimated (``hilcal.drift.reading_scale_parameters``)."""
     if not result.outcomes or result.before_params is None:
         return None
     ident = result.outcomes[result.chosen].identification
     if ident.model != "42":
         return None
-    return machine_parameters(robot, ident, result.before_params.l0_mm)
+    physics = getattr(result, "physics", None)
+    diag = None if physics is None else physics.diagnosis
+    if diag is not None and physics.geometry_source != "the geometric fit":
+        ident = dataclasses.replace(diag.final_fit, x=np.concatenate([physics.geometry_x, diag.final_fit.x[42:]]))
+    out = machine_parameters(robot, ident, result.before_params.l0_mm)
+    scale = [] if diag is None else [f"leg{i}_sensor_scale_ppm" for i in range(1, 7)]
+    if scale and all(name in diag.std_errors for name in scale) and physics.loadable is not None:
+        lo, hi = robot.leg_limits
+        reads_long = -physics.loadable.block.scale_ppm  # the machine's transducers, whatever the block corrects
+        out.update(reading_scale_parameters(reads_long, [diag.std_errors[n] for n in scale], hi - lo))
+    return out

@@ -1,6 +1,7 @@
 """Simulator and station settings for runs whose test does not depend on machine time: the servo moves 1e5 times
 faster than real time, the CMM probes at once and the station waits no settle time (its servo has settled long
-before), so a whole `hilcal run --sim` costs the engine, driver and protocol work only (docs/benchmarks_run.md)."""
+before), so a whole `hilcal run --sim` costs the engine, driver and protocol work only (docs/benchmarks_run.md).
+The rig's clock follows the servo's, so its temperature is held (a drift of 1 K/h would be tens of K per second)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,9 @@ INSTANT_SIM = """
 time_scale = 100000.0
 [cmm]
 time_scale = 0.0
+[rig.temperature]
+drift_k_per_h = 0.0
+amplitude_k = 0.0
 """
 
 

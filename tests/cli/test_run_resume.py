@@ -1,7 +1,8 @@
 """`hilcal run --sim` killed with SIGKILL at seeded points (the upload included) and resumed each time.
 
 Every resume must end in a complete run with the full set of measurements and no duplicates, and the
-simulated controller's live parameter set must always be exactly the old or the new one.
+simulated controller's live parameter set and compensation block must always be exactly the old or the new pair
+(the rig's transducers have gain errors, so the run uploads a block with the geometry).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hilcal.protocols.compensation import block_words, zero_block
 from hilcal.robot import default_robot
 
 SIM_CONFIG = """
@@ -25,6 +27,9 @@ SIM_CONFIG = """
 response_delay_s = 0.03
 [cmm]
 time_scale = 0.0
+[rig.effects.sensor_scale]
+enabled = true
+gain_error_ppm = [400.0, 0.0, 0.0, -300.0, 0.0, 0.0]
 """
 """Modbus answers slowly enough for kills to land inside the upload; the CMM probes at once, so a pose takes about
 0.1 s of engine, driver and protocol work (the kill points are in measurements, not in seconds)."""
@@ -49,10 +54,12 @@ def _journal_state(path: Path) -> tuple[int, str | None, str | None]:
     return n, None if row is None else json.loads(row[0])["outcome"], None if run is None else run[0]
 
 
-def _live_set(state_file: Path) -> np.ndarray | None:
+def _live_set(state_file: Path) -> tuple[np.ndarray, str | None] | None:
+    """The live geometry and compensation block (registers as hex; None: the factory block)."""
     if not state_file.exists():
         return None
-    return np.array(json.loads(state_file.read_text())["banks"]["live"], dtype=float)
+    banks = json.loads(state_file.read_text())["banks"]
+    return np.array(banks["live"], dtype=float), banks.get("comp_live")
 
 
 def _start(out: Path, tmp: Path, run_id: str | None) -> subprocess.Popen[bytes]:
@@ -80,6 +87,7 @@ def test_sigkill_at_seeded_points_then_resume(tmp_path):
 
     robot = default_robot()
     old = np.concatenate([robot.a.ravel(), robot.b.ravel(), robot.l0])
+    old_block = np.array(block_words(zero_block()), dtype=">u2").tobytes().hex()  # the factory block
     live_sets, counts, run_id, kills = [], [], None, 0
     for kind, k, delay in plan:
         proc = _start(out, tmp_path, run_id)
@@ -121,7 +129,10 @@ def test_sigkill_at_seeded_points_then_resume(tmp_path):
     assert report["verification"]["after"]["max_position_mm"] <= 0.05
     uploaded = report["compensation"]["uploaded_parameters"]
     new = np.concatenate([np.ravel(uploaded["a_mm"]), np.ravel(uploaded["b_mm"]), uploaded["l0_mm"]])
-    for live in live_sets:
-        if live is not None:
-            assert np.allclose(live, old, atol=1e-3) or np.allclose(live, new, atol=1e-3), "mixed live set"
-    assert np.allclose(_live_set(out / "sim_state.json"), new, atol=1e-3)
+    assert report["compensation"]["compensation_block"]["scale_ppm"][0] == pytest.approx(-400 / 1.0004, abs=15)
+    final_live, new_block = _live_set(out / "sim_state.json")
+    assert np.allclose(final_live, new, atol=1e-3) and new_block is not None
+    for pair in filter(None, live_sets):
+        live, block = pair
+        assert (np.allclose(live, old, atol=1e-3) and block == old_block) or (
+            np.allclose(live, new, atol=1e-3) and block == new_block), "mixed live set"

@@ -150,3 +150,23 @@ def test_fewer_than_two_calibrations_and_bad_input():
         drift([one], "m", threshold_mm=float("nan"))
     assert describe("leg4_b_z_mm") == ("leg 4 base joint z", "the base joint of leg 4 moved (loose mount, wear, "
                                                               "a knock)")
+
+
+def test_a_transducer_scale_that_grows_between_calibrations_is_named_as_failing() -> None:
+    """Each leg's reading error at full stroke (from the scale the run's diagnosis estimated) drifts like the joints:
+    leg 2's transducer reads 300 ppm long for five calibrations, then 650 ppm (a failing magnetostrictive wire)."""
+    from hilcal.drift import reading_scale_parameters
+
+    rng = np.random.default_rng(3)
+    cals = []
+    for j in range(8):
+        truth = np.array([20.0, 300.0 if j < 5 else 650.0, -40.0, 0.0, 10.0, 5.0])
+        params = reading_scale_parameters(truth + rng.normal(0, 3.0, 6), np.full(6, 3.0), 1000.0)
+        time = (datetime(2026, 1, 1, tzinfo=UTC) + timedelta(days=30 * j)).isoformat()
+        cals.append(Calibration(f"run{j}", time, {k: v for k, (v, _) in params.items()},
+                                {k: s for k, (_, s) in params.items()}))
+    result = drift(cals, "m")
+    assert [p.name for p in result.flagged] == ["leg2_reads_long_at_full_stroke_mm"]
+    flagged = result.flagged[0]
+    assert flagged.flag == "step" and flagged.step_mm == pytest.approx(0.35, abs=0.02)
+    assert "failing transducer" in flagged.sentence and "leg 2 reading at full stroke" in flagged.sentence
