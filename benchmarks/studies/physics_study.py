@@ -40,7 +40,7 @@ THERMAL = {"controller": {"time_scale": 100.0}, "cmm": {"time_scale": 0.0}}
 """A thermal case keeps the simulator's default clock (100 x real time), so the rig warms by about as much as during
 a real run (the instant clock would make it hours)."""
 GRADIENT_FAULT = {"sensor_scale": {"enabled": True, "gain_error_ppm": [3000.0, 0.0, 0.0, 0.0, 0.0, 0.0]}}
-SCREW = {"cyclic_stroke_error": {"enabled": True, "amplitude_mm": 0.01, "period_mm": 120.0,
+SCREW = {"cyclic_stroke_error": {"enabled": True, "amplitude_mm": 0.02, "period_mm": 100.0,
                                  "phase_deg": [0.0, 60.0, 120.0, 180.0, 240.0, 300.0]}}
 
 
@@ -73,7 +73,7 @@ def cases(quick: bool) -> list[Case]:
         out.append(Case("oil_column_compliance + thermal_expansion",
                         _library(["oil_column_compliance", "thermal_expansion"], seed), seed, THERMAL))
         out.append(Case("0.3 % gradient fault (leg 1)", GRADIENT_FAULT, seed))
-        out.append(Case("cyclic screw error (10 µm, 120 mm)", SCREW, seed))
+        out.append(Case("cyclic screw error (20 µm, 100 mm)", SCREW, seed))
     return out
 
 
