@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 
 from procedures.cli.common import EstimatorChoice, RobotOption, err, fail, out
 from procedures.cli.panel import DEFAULT_PORT, PortOption
@@ -18,7 +19,7 @@ def run(
     out_dir: Annotated[Path, typer.Option("--out", help="run folder: journal, logs, recording, report")],
     sim: Annotated[bool, typer.Option("--sim", help="start the simulated devices and run against them")] = False,
     station: Annotated[Path | None, typer.Option(help="station TOML (CAN, Modbus, CMM, robot, timing); with --sim "
-                                                 "only its [timing] and sign-off settings are used")] = None,
+                                                 "only its \\[timing] and sign-off settings are used")] = None,
     sim_config: Annotated[Path | None, typer.Option(help="simulator TOML for --sim")] = None,
     resume: Annotated[str | None, typer.Option(help="continue the interrupted run RUN_ID in --out")] = None,
     yes: Annotated[bool, typer.Option("--yes", help="unattended: answer every prompt yes")] = False,
@@ -121,7 +122,7 @@ def _identity(station: Path) -> dict[str, str | None]:
 
 def upload(
     params_file: Annotated[Path, typer.Argument(help="parameter set JSON {a_mm, b_mm, l0_mm}")],
-    station: Annotated[Path, typer.Option(help="station TOML (its [modbus] section is used)")],
+    station: Annotated[Path, typer.Option(help="station TOML (its \\[modbus] section is used)")],
     save: Annotated[bool, typer.Option(help="also save to non-volatile memory")] = False,
     yes: Annotated[bool, typer.Option("--yes", help="do not ask for confirmation")] = False,
     records: RecordsOption = None,
@@ -144,7 +145,7 @@ def upload(
         err.print(str(e))
         raise typer.Exit(1) from None
     except ParamsError as e:
-        err.print(f"[bold red]upload failed:[/] {e}", highlight=False)
+        err.print(f"[bold red]upload failed:[/] {escape(str(e))}", highlight=False, markup=True)
         raise typer.Exit(3) from None
     finally:
         client.close()
@@ -154,7 +155,7 @@ def upload(
 
 
 def rollback(
-    station: Annotated[Path, typer.Option(help="station TOML (its [modbus] section is used)")],
+    station: Annotated[Path, typer.Option(help="station TOML (its \\[modbus] section is used)")],
     records: RecordsOption = None,
     operator: Annotated[str | None, typer.Option(help="name recorded with the rollback")] = None,
 ) -> None:
@@ -169,7 +170,7 @@ def rollback(
         with db:
             record = rollback_controller(client, db, operator or "", **identity)
     except ParamsError as e:
-        err.print(f"[bold red]rollback failed:[/] {e}", highlight=False)
+        err.print(f"[bold red]rollback failed:[/] {escape(str(e))}", highlight=False, markup=True)
         raise typer.Exit(3) from None
     finally:
         client.close()
