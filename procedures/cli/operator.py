@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
@@ -45,6 +44,7 @@ def run(
     """
     from procedures.cli.panel import run_with_panel
     from procedures.cli.plan_time import print_run_estimate, timing_or_fail
+    from procedures.cli.run_summary import print_run_end
     from procedures.cli.sim_station import SIM_TIMING, sim_station
     from procedures.runner import RunRequest, default_records_path, execute_run
 
@@ -62,12 +62,7 @@ def run(
     def execute(confirm, session=None):
         result = execute_run(request, confirm, session)
         (out if result.code == 0 else err).print(result.message, highlight=False, markup=False, soft_wrap=True)
-        if result.report_path is not None:
-            from hilcal.reports.run import links_lines  # here, not at start-up: plotting loads after the machine moved
-
-            for line in links_lines(json.loads(result.report_path.read_text()).get("links")):
-                out.print(line, highlight=False, markup=False, soft_wrap=True)
-            out.print(f"report: {result.report_path} and {result.report_path.with_suffix('.html')}", soft_wrap=True)
+        print_run_end(out, result.report_path, result.certificate_path)
         return result
 
     if panel:

@@ -175,6 +175,32 @@ def test_the_simulated_station_states_its_cmm_and_example_limits(accepted: tuple
     assert all(before[check["key"]] > check["limit"] for check in report["certificate"]["limits"])
 
 
+def test_the_run_ends_with_its_summary(accepted: tuple[Path, subprocess.CompletedProcess]) -> None:
+    """The last thing printed: the verification poses before and after (± U) as report.json has them, what was
+    uploaded, the verdict and where the report and certificate are."""
+    tmp, done = accepted
+    report = json.loads((tmp / "run" / "report.json").read_text())
+    lines = done.stdout.rstrip().splitlines()
+    start = next(i for i, line in enumerate(lines) if f"run {report['run_id']}: complete" in line)
+    assert "holds/retries" in lines[start - 1]  # after the links' statistics, and nothing after it
+    summary = [" ".join(line.split()) for line in lines[start:]]
+    assert summary[1] == "6 verification poses before after"
+    u = report["uncertainty"]
+    for row, (key, label, decimals) in zip(summary[2:6], [("max_position_mm", "max position (mm)", 4),
+                                                         ("rms_position_mm", "RMS position (mm)", 4),
+                                                         ("max_orientation_deg", "max orientation (deg)", 5),
+                                                         ("rms_orientation_deg", "RMS orientation (deg)", 5)],
+                                      strict=True):
+        before, after = u["before"][key], u["after"][key]
+        assert row == (f"{label} {before['value']:.{decimals}f} ± {before['U']:.{decimals}f} "
+                       f"{after['value']:.{decimals}f} ± {after['U']:.{decimals}f}")
+    assert summary[7].startswith("uploaded mode full: joint positions a, b and leg offsets l0")
+    assert report["upload"]["record"]["params_sha256"][:12] in summary[8]
+    assert summary[9] == "verdict pass (4 limits, iso14253-1 decision rule)"
+    assert summary[10] == f"report {tmp / 'run' / 'report.html'} (and report.json)"
+    assert summary[11].startswith(f"certificate {tmp / 'run' / 'certificate.'}") and len(summary) == 12
+
+
 def test_a_limit_the_demo_machine_cannot_meet_fails(strict: tuple[Path, subprocess.CompletedProcess]) -> None:
     tmp, done = strict
     assert done.returncode == 4, done.stdout + done.stderr
@@ -185,6 +211,8 @@ def test_a_limit_the_demo_machine_cannot_meet_fails(strict: tuple[Path, subproce
     assert check["decision"] == "fail" and check["value"] - check["U"] > check["limit"] == 0.0005
     assert report["instrument"]["stated_uncertainty_mm"] == pytest.approx(0.004)  # the simulator's default 2 x 0.002
     assert "simulator" in report["instrument"]["uncertainty_source"]
+    summary = " ".join(done.stdout[done.stdout.index(f"run {report['run_id']}: complete"):].split())
+    assert "verdict fail (1 limit, iso14253-1 decision rule); max_position_mm fail" in summary
 
 
 def test_certificate_command_regenerates_both_files(accepted: tuple[Path, subprocess.CompletedProcess],
