@@ -68,7 +68,7 @@ def uploaded_lines(report: Mapping[str, Any]) -> list[str]:
         upload.get("outcome"), upload.get("outcome") or "outcome not recorded")
     readback = {True: "; read back: matches", False: "; read back: DIFFERS"}.get(record.get("live_readback_match"), "")
     sha = record.get("params_sha256") or upload.get("sha256")
-    lines = [f"mode {mode}" + (f": {MODES[mode]}" if mode in MODES else ""),
+    lines = [f"mode {mode or 'not recorded'}" + (f": {MODES[mode]}" if mode in MODES else ""),
              outcome + readback + (f" (sha256 {sha[:12]})" if isinstance(sha, str) else "")]
     physics = report.get("physics")
     corrected = physics.get("corrected") if isinstance(physics, Mapping) else None
