@@ -82,7 +82,8 @@ def software_info() -> dict[str, Any]:
 def _cmm_uncertainty(ctx: SignoffContext, robot: Robot) -> tuple[float | None, str | None]:
     """The CMM's stated expanded uncertainty U (k = 2) of a sphere-centre coordinate (mm) and where it comes from."""
     if ctx.settings.cmm.stated_uncertainty_mm is not None:
-        return ctx.settings.cmm.stated_uncertainty_mm, "station file [cmm] stated_uncertainty_mm"
+        return ctx.settings.cmm.stated_uncertainty_mm, (ctx.settings.cmm_uncertainty_source
+                                                        or "station file [cmm] stated_uncertainty_mm")
     if robot.sphere_sigma_mm is not None:
         return K_COVERAGE * robot.sphere_sigma_mm, "robot file [cmm] sphere_sigma_mm (standard), times 2"
     return None, None
@@ -225,12 +226,14 @@ def regenerate_certificate(run_dir: Path) -> tuple[Path, Path | None, str | None
 
 
 def signoff_settings(options: dict[str, Any], station: Any | None) -> SignoffSettings:
-    """The run's sign-off settings: the opened station's (a real run), or the station file's alone (--sim)."""
-    from procedures.signoff import load_signoff, signoff_from_station
+    """The run's sign-off settings: the opened station's (a real run); for --sim the station file's where it gives
+    them, else the simulated station's (``procedures.signoff.sim_signoff``; the file's alone without a station)."""
+    from procedures.signoff import load_signoff, signoff_from_station, sim_signoff
 
-    if station is not None:
+    if not options.get("sim"):
         return signoff_from_station(station, options.get("station_path"))
-    return load_signoff(options.get("station_path"))
+    file = load_signoff(options.get("station_path"))
+    return file if station is None else sim_signoff(file, station, options.get("station_path") is not None)
 
 
 def verdict_line(report: dict[str, Any]) -> str:

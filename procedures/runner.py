@@ -353,7 +353,7 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
                                                               options["robot_path"]))
             else:
                 station = load_station(req.station_path or options["station_path"])
-            settings = signoff_settings(options, None if options["sim"] else station)
+            settings = signoff_settings(options, station)
         except (RobotFileError, PlanError, StationConfigError, ValueError) as e:
             return RunExit(EXIT_BAD_INPUT, "", str(e))
         except SimulatorStartError as e:

@@ -87,6 +87,8 @@ class SignoffSettings(_Strict):
     acceptance: AcceptanceSection = Field(default_factory=AcceptanceSection)
     cmm: CmmIdentity = Field(default_factory=CmmIdentity)
     station_file: str | None = None
+    cmm_uncertainty_source: str | None = None
+    """Where ``cmm.stated_uncertainty_mm`` comes from when not from the station file (the simulator's CMM)."""
 
 
 def signoff_from_station(station: Any, path: str | Path | None) -> SignoffSettings:
@@ -95,6 +97,23 @@ def signoff_from_station(station: Any, path: str | Path | None) -> SignoffSettin
     return SignoffSettings(name=station.name, operator=station.operator, machine_serial=station.machine.serial,
                            acceptance=station.acceptance, cmm=CmmIdentity(**cmm),
                            station_file=None if path is None else str(path))
+
+
+def sim_signoff(file: SignoffSettings, station: Any, station_file_given: bool) -> SignoffSettings:
+    """The sign-off of a ``--sim`` run: the station file's settings where it gives them, else the simulated
+    station's (its CMM's identity and stated uncertainty from the simulator, its example limits).
+
+    A station file replaces the example limits as a whole (its [acceptance], or none); the CMM's identity and
+    uncertainty fall back to the simulator's one by one.
+    """
+    sim_cmm = {k: getattr(station.cmm, k) for k in CmmIdentity.model_fields}
+    cmm = {k: v if (v := getattr(file.cmm, k)) is not None else sim_cmm[k] for k in CmmIdentity.model_fields}
+    from_sim = file.cmm.stated_uncertainty_mm is None and cmm["stated_uncertainty_mm"] is not None
+    return file.model_copy(update={
+        "cmm": CmmIdentity(**cmm),
+        "acceptance": file.acceptance if station_file_given else station.acceptance,
+        "cmm_uncertainty_source": "the simulator's [cmm] stated_uncertainty_mm (default 2 x its touch-point "
+                                  "noise_sigma_mm)" if from_sim else None})
 
 
 def load_signoff(path: str | Path | None) -> SignoffSettings:

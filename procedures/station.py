@@ -288,7 +288,8 @@ def station_from_channels(channels: dict[str, Any], robot_path: str | Path | Non
     """The station of a running simulator (``SimHandle.channels()`` / the JSON line of ``hilcal sim --json``).
 
     The robot is ``robot_path``, else the simulator's robot file, else the built-in robot; its name must be
-    the simulator's robot (StationConfigError otherwise).
+    the simulator's robot (StationConfigError otherwise). The CMM's identity and stated uncertainty are the
+    simulator's, where it states them (a real station's come from its file).
     """
     path = robot_path if robot_path is not None else channels.get("robot_path")
     try:
@@ -301,7 +302,8 @@ def station_from_channels(channels: dict[str, Any], robot_path: str | Path | Non
             f"{path or '<built-in>'} is {robot.name!r}"
         )
     try:
-        cmm = {"url": channels["cmm"]["url"], "alignment": channels["cmm_alignment"]}
+        cmm = {"url": channels["cmm"]["url"], "alignment": channels["cmm_alignment"],
+               **{k: channels["cmm"][k] for k in ("identity", "stated_uncertainty_mm") if channels["cmm"].get(k)}}
         data = {"robot": path, "can": channels["can"], "modbus": channels["modbus"], "cmm": cmm}
     except (KeyError, TypeError) as err:
         raise StationConfigError(f"simulator channels: missing {err}") from None

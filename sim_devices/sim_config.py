@@ -19,6 +19,7 @@ Example configuration (every key optional; relative paths are relative to the fi
 
     [cmm]                           # CmmServerConfig (time_scale defaults to 0.0005, tcp_port to 0 here)
     noise_sigma_mm = 0.002          # probing noise per coordinate
+    stated_uncertainty_mm = 0.004   # U (k = 2) per sphere-centre coordinate it states (default 2 x noise_sigma_mm)
     alignment_error_mm = 2.0        # error of the published T_cmm<-base (a station's rough CMM set-up)
     alignment_error_deg = 0.02
     [cmm.faults]
@@ -81,16 +82,31 @@ class SimControllerConfig(ControllerSimConfig):
 
 
 class SimCmmConfig(CmmServerConfig):
-    """CmmServerConfig with fast defaults, a TCP endpoint, and the error of the published CMM alignment."""
+    """CmmServerConfig with fast defaults, a TCP endpoint, the error of the published CMM alignment, and the
+    uncertainty the simulated CMM states (as a real CMM's calibration certificate does, for the station file)."""
 
     time_scale: float = Field(default=0.0005, ge=0, description="multiplies every CMM duration; 0 = instant")
     tcp_port: int | None = Field(default=0, ge=0, le=65535, description="None: pty only; 0: ephemeral port")
     alignment_error_mm: float = Field(default=2.0, ge=0, description="offset of the published T_cmm<-base")
     alignment_error_deg: float = Field(default=0.02, ge=0, description="rotation error of the published T_cmm<-base")
+    stated_uncertainty_mm: float | None = Field(
+        default=None, gt=0, le=1.0, description="expanded uncertainty U (k = 2) of one sphere-centre coordinate "
+        "that the simulated CMM states; None: 2 x noise_sigma_mm, one touch point's (a centre fitted from several "
+        "touches scatters less, so this errs on the safe side)")
+
+    def stated_uncertainty(self) -> float | None:
+        """U (k = 2) per sphere-centre coordinate: as set, else 2 x noise_sigma_mm (None for a noiseless CMM)."""
+        if self.stated_uncertainty_mm is not None:
+            return self.stated_uncertainty_mm
+        return 2.0 * self.noise_sigma_mm if self.noise_sigma_mm > 0 else None
+
+    def identity(self) -> str:
+        """The CMM as a certificate names it: what it is and the noise it was configured with."""
+        return f"simulated CMM (hilcal sim), touch-point noise {self.noise_sigma_mm:g} mm per coordinate"
 
     def server_config(self, default_seed: int) -> CmmServerConfig:
         """The CmmServerConfig to start the server with (seed: the rig seed unless set here)."""
-        data = self.model_dump(exclude={"alignment_error_mm", "alignment_error_deg"})
+        data = self.model_dump(exclude={"alignment_error_mm", "alignment_error_deg", "stated_uncertainty_mm"})
         if "seed" not in self.model_fields_set:
             data["seed"] = default_seed
         return CmmServerConfig.model_validate(data)

@@ -91,7 +91,9 @@ class SimHandle:
         out: dict[str, Any] = {
             "can": {"interface": "slcan", "channel": servers.slcan_path, "sleep_after_open": 0},
             "modbus": {"host": HOST, "port": servers.modbus_port, "device_id": self.config.controller.device_id},
-            "cmm": {"url": cmm.path or cmm.socket_url, "socket_url": cmm.socket_url},
+            "cmm": {"url": cmm.path or cmm.socket_url, "socket_url": cmm.socket_url,
+                    "identity": self.config.cmm.identity(),
+                    "stated_uncertainty_mm": self.config.cmm.stated_uncertainty()},
             "cmm_alignment": self.alignment.tolist(),
             "robot": self.robot.name,
             "robot_path": None if self.config.robot is None else str(self.config.robot),

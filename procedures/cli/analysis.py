@@ -77,7 +77,7 @@ def identify(
     if wiring.problem:
         err.print(f"[bold yellow]warning:[/] {escape(wiring.sentence([f'leg{i}_mm' for i in range(1, 7)]))}; "
                   "the identification uses the legs as given (`hilcal diagnose` undoes it)",
-                  highlight=False, soft_wrap=True)
+                  highlight=False, soft_wrap=True, markup=True)
     try:
         outcome = calibrate(rec, rb, estimator=estimator.value, model=model.value, formulation=formulation,
                             method=chosen_method)
@@ -175,7 +175,8 @@ def diagnose(
     if as_json:
         print(json.dumps(diag.to_json(), indent=2))
         return
-    out.print(f"[bold]effect:[/] {diag.effect}   [bold]effects:[/] {', '.join(diag.effects) or 'none'}")
+    out.print(f"[bold]effect:[/] {escape(diag.effect)}   [bold]effects:[/] {escape(', '.join(diag.effects) or 'none')}",
+              markup=True)
     for sentence in diag.summary:
         out.print(f"  - {sentence}", highlight=False, markup=False)
     if diag.parameter_table:
@@ -241,7 +242,7 @@ def design(
     seed: int = 0,
     out_csv: Annotated[Path | None, typer.Option("--out", help="write the chosen pose set as CSV")] = None,
     pose_set: Annotated[str, typer.Option(help="pose set written by --out")] = "set3_factorial_exchange32",
-    station: Annotated[Path | None, typer.Option(help="station TOML: its [timing] gives the machine's speed")] = None,
+    station: Annotated[Path | None, typer.Option(help="station TOML: its \\[timing] gives the machine's speed")] = None,
     max_minutes: Annotated[float | None, typer.Option("--max-minutes", help="time budget of the whole run")] = None,
     noise_mm: Annotated[float, typer.Option("--noise-mm", help="pose noise per component for the predicted "
                                             "verify error, mm")] = 0.005,

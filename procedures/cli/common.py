@@ -20,8 +20,10 @@ if TYPE_CHECKING:
     from hilcal.metrics import AccuracySummary
     from hilcal.robot import Robot
 
-out = Console(width=None if sys.stdout.isatty() else 120)
-err = Console(stderr=True)
+out = Console(width=None if sys.stdout.isatty() else 120, markup=False)
+err = Console(stderr=True, markup=False)
+"""Markup is off: messages carry paths, station sections and names, and rich would take `[timing]` for a style tag
+and drop it. A message with markup passes ``markup=True`` and escapes what it prints (``rich.markup.escape``)."""
 
 BAD_INPUT = 2
 
@@ -41,7 +43,7 @@ RobotOption = Annotated[Path | None, typer.Option("--robot", help="robot TOML fi
 
 def fail(message: str) -> NoReturn:
     """Print the message as an error and exit with code 2 (bad input)."""
-    err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+    err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True, markup=True)
     raise typer.Exit(BAD_INPUT)
 
 

@@ -80,7 +80,7 @@ def _print_summary(result: ImportResult, robot: Robot | None) -> None:
             for s in result.sessions if s.at_extreme is not None))
     out.print(ranges)
     for note in result.notes:
-        out.print(f"[yellow]note:[/] {escape(note)}", highlight=False)
+        out.print(f"[yellow]note:[/] {escape(note)}", highlight=False, markup=True)
 
 
 def import_command(
@@ -143,8 +143,10 @@ def robot_from_geometry_command(
     out.print(f"travel box: {check.corners_reachable} of 64 corners and {check.reachable_fraction:.0%} of random "
               "poses are reachable (legs within limits, away from singularities)")
     if check.reachable_fraction < MIN_REACHABLE_FRACTION:
-        out.print("[yellow]note:[/] the legs reach little of the travel box: check stroke, home and travel")
+        out.print("[yellow]note:[/] the legs reach little of the travel box: check stroke, home and travel",
+                  markup=True)
     if spec.cmm is None:
         out.print("[yellow]note:[/] no \\[cmm] section: the robot file holds a nominal tooling-sphere layout; "
-                  "replace it with your spheres' positions before measuring with a CMM", highlight=False)
+                  "replace it with your spheres' positions before measuring with a CMM", highlight=False,
+                  markup=True)
     out.print(f"wrote {out_path}")

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import enum
-import json
 from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 
 from procedures.cli.common import EstimatorChoice, RobotOption, err, fail, out
 from procedures.cli.panel import DEFAULT_PORT, PortOption
@@ -24,7 +24,7 @@ def run(
     out_dir: Annotated[Path, typer.Option("--out", help="run folder: journal, logs, recording, report")],
     sim: Annotated[bool, typer.Option("--sim", help="start the simulated devices and run against them")] = False,
     station: Annotated[Path | None, typer.Option(help="station TOML (CAN, Modbus, CMM, robot, timing); with --sim "
-                                                 "only its [timing] and sign-off settings are used")] = None,
+                                                 "only its \\[timing] and sign-off settings are used")] = None,
     sim_config: Annotated[Path | None, typer.Option(help="simulator TOML for --sim")] = None,
     resume: Annotated[str | None, typer.Option(help="continue the interrupted run RUN_ID in --out")] = None,
     yes: Annotated[bool, typer.Option("--yes", help="unattended: answer every prompt yes")] = False,
@@ -53,6 +53,7 @@ def run(
     """
     from procedures.cli.panel import run_with_panel
     from procedures.cli.plan_time import print_run_estimate, timing_or_fail
+    from procedures.cli.run_summary import print_run_end
     from procedures.cli.sim_station import SIM_TIMING, sim_station
     from procedures.runner import RunRequest, default_records_path, execute_run
 
@@ -70,12 +71,7 @@ def run(
     def execute(confirm, session=None):
         result = execute_run(request, confirm, session)
         (out if result.code == 0 else err).print(result.message, highlight=False, markup=False, soft_wrap=True)
-        if result.report_path is not None:
-            from hilcal.reports.run import links_lines  # here, not at start-up: plotting loads after the machine moved
-
-            for line in links_lines(json.loads(result.report_path.read_text()).get("links")):
-                out.print(line, highlight=False, markup=False, soft_wrap=True)
-            out.print(f"report: {result.report_path} and {result.report_path.with_suffix('.html')}", soft_wrap=True)
+        print_run_end(out, result.report_path, result.certificate_path)
         return result
 
     if panel:
@@ -139,7 +135,7 @@ def _identity(station: Path) -> dict[str, str | None]:
 
 def upload(
     params_file: Annotated[Path, typer.Argument(help="parameter set JSON {a_mm, b_mm, l0_mm}")],
-    station: Annotated[Path, typer.Option(help="station TOML (its [modbus] section is used)")],
+    station: Annotated[Path, typer.Option(help="station TOML (its \\[modbus] section is used)")],
     save: Annotated[bool, typer.Option(help="also save to non-volatile memory")] = False,
     yes: Annotated[bool, typer.Option("--yes", help="do not ask for confirmation")] = False,
     records: RecordsOption = None,
@@ -162,7 +158,7 @@ def upload(
         err.print(str(e))
         raise typer.Exit(1) from None
     except ParamsError as e:
-        err.print(f"[bold red]upload failed:[/] {e}", highlight=False)
+        err.print(f"[bold red]upload failed:[/] {escape(str(e))}", highlight=False, markup=True)
         raise typer.Exit(3) from None
     finally:
         client.close()
@@ -172,7 +168,7 @@ def upload(
 
 
 def rollback(
-    station: Annotated[Path, typer.Option(help="station TOML (its [modbus] section is used)")],
+    station: Annotated[Path, typer.Option(help="station TOML (its \\[modbus] section is used)")],
     records: RecordsOption = None,
     operator: Annotated[str | None, typer.Option(help="name recorded with the rollback")] = None,
 ) -> None:
@@ -187,7 +183,7 @@ def rollback(
         with db:
             record = rollback_controller(client, db, operator or "", **identity)
     except ParamsError as e:
-        err.print(f"[bold red]rollback failed:[/] {e}", highlight=False)
+        err.print(f"[bold red]rollback failed:[/] {escape(str(e))}", highlight=False, markup=True)
         raise typer.Exit(3) from None
     finally:
         client.close()

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Annotated, Any, NoReturn
 
 import typer
+from rich.markup import escape
 
 from procedures.cli.common import err, fail, out
 
@@ -24,7 +25,7 @@ records_app = typer.Typer(no_args_is_help=True, help="The calibration records: s
 
 
 def unavailable(message: str) -> NoReturn:
-    err.print(f"[bold red]records unavailable:[/] {message}", highlight=False, markup=True)
+    err.print(f"[bold red]records unavailable:[/] {escape(message)}", highlight=False, markup=True)
     raise typer.Exit(UNAVAILABLE)
 
 

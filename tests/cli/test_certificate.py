@@ -2,9 +2,11 @@
 keys, the verdict with its exit code, the records and history, `hilcal certificate`, the simulated repeatability
 measured back, and the certificate in headless Chromium.
 
-Two simulated runs on a small plan (12 measure and 6 verify poses) keep this fast: one as the brief's command
-(no limits, 3 cycles), one with a repeatability configured in the simulated servo, 30 cycles and limits the machine
-cannot meet. The expected RP comes from a Monte Carlo through the nominal kinematics written here, not from hilcal.
+Three simulated runs on a small plan (12 measure and 6 verify poses) keep this fast: one as the brief's command
+(no station file: the simulated station's example limits and its CMM's stated uncertainty, 3 cycles), one with a
+limit the demo machine cannot meet, and one with a repeatability configured in the simulated servo, 30 cycles and
+limits the machine cannot meet. The expected RP comes from a Monte Carlo through the nominal kinematics written here,
+not from hilcal.
 """
 
 from __future__ import annotations
@@ -33,6 +35,9 @@ from tests.cli.sim_speed import INSTANT_SIM, instant_timing
 pytestmark = pytest.mark.timeout(420)
 OPERATOR = "A. Tester"
 REPEATABILITY_MM = 0.02
+NOISE_MM = 0.002
+"""The simulated CMM's touch-point noise in the brief's run; the CMM states U = 2 x NOISE_MM per sphere coordinate."""
+EXAMPLE_LIMITS = {"max_position_mm", "rms_position_mm", "max_orientation_deg", "rms_orientation_deg"}
 STATION = f"""
 name = "test bay"
 [machine]
@@ -63,11 +68,23 @@ def small_plan(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def accepted(tmp_path_factory: pytest.TempPathFactory, small_plan: Path) -> tuple[Path, subprocess.CompletedProcess]:
-    """The brief's command (with 3 cycles and the small plan): no station, so no limits."""
+    """The brief's command (with 3 cycles and the small plan): no station file, so the simulated station's."""
     tmp = tmp_path_factory.mktemp("accepted")
-    (tmp / "sim.toml").write_text(INSTANT_SIM)
+    (tmp / "sim.toml").write_text(INSTANT_SIM.replace("[cmm]\n", f"[cmm]\nnoise_sigma_mm = {NOISE_MM}\n"))
     done = _hilcal("run", "--sim", "--yes", "--operator", OPERATOR, "--acceptance", "iso9283", "--cycles", "3",
                    "--plan", str(small_plan), "--sim-config", str(tmp / "sim.toml"), "--out", str(tmp / "run"),
+                   records=tmp / "records.sqlite")
+    return tmp, done
+
+
+@pytest.fixture(scope="module")
+def strict(tmp_path_factory: pytest.TempPathFactory, small_plan: Path) -> tuple[Path, subprocess.CompletedProcess]:
+    """The demo machine against a station file with a limit it cannot meet and no [cmm]: the simulator states U."""
+    tmp = tmp_path_factory.mktemp("strict")
+    (tmp / "station.toml").write_text(f"[acceptance]\nmax_position_mm = 0.0005\n{instant_timing()}")
+    (tmp / "sim.toml").write_text(INSTANT_SIM)
+    done = _hilcal("run", "--sim", "--yes", "--operator", OPERATOR, "--station", str(tmp / "station.toml"),
+                   "--sim-config", str(tmp / "sim.toml"), "--plan", str(small_plan), "--out", str(tmp / "run"),
                    records=tmp / "records.sqlite")
     return tmp, done
 
@@ -101,7 +118,7 @@ def test_accepted_run_writes_the_certificate_and_its_pdf(accepted: tuple[Path, s
     assert report["software"]["name"] == "hilcal" and report["software"]["version"]
     cert = report["certificate"]
     assert cert["number"] == f"HILCAL-{report['run_id']}"
-    assert cert["verdict"] == "no acceptance limits set" and cert["limits"] == []
+    assert cert["verdict"] == "pass" and {c["key"] for c in cert["limits"]} == EXAMPLE_LIMITS
     assert cert["decision_rule"]["key"] == "iso14253-1"
     iso = report["iso9283"]
     assert [p["pose"] for p in iso["poses"]] == ["P1", "P2", "P3", "P4", "P5"]
@@ -116,7 +133,7 @@ def test_accepted_run_writes_the_certificate_and_its_pdf(accepted: tuple[Path, s
     assert "acceptance" in estimate and done.stdout.index("Estimated machine time") < done.stdout.index("pose 1")
     assert "certificate HILCAL-" in done.stdout
     pdf = _pdf_text(run / "certificate.pdf")
-    for needle in (OPERATOR, cert["number"].split("-")[0], "no acceptance limits set", "ISO 9283", "RPl", "APP",
+    for needle in (OPERATOR, cert["number"].split("-")[0], "Verdict: pass", "ISO 9283", "RPl", "APP",
                    "P1", "P5", "Calibration certificate"):
         assert needle in pdf, needle
     assert cert["number"].replace("-", "") in pdf.replace("-", "").replace("\n", "")
@@ -131,11 +148,71 @@ def test_records_and_history_show_the_verdict(accepted: tuple[Path, subprocess.C
         row = db.execute("SELECT operator, verdict, certificate_number, certificate_path FROM runs").fetchone()
     finally:
         db.close()
-    assert row[:3] == (OPERATOR, "no acceptance limits set", report["certificate"]["number"])
+    assert row[:3] == (OPERATOR, "pass", report["certificate"]["number"])
     assert Path(row[3]) == (tmp / "run" / "certificate.pdf").resolve()
     history = _hilcal("history", "--records", str(tmp / "records.sqlite"), records=tmp / "records.sqlite")
     assert history.returncode == 0, history.stderr
-    assert "sign-off: no acceptance limits set" in history.stdout and report["certificate"]["number"] in history.stdout
+    assert "sign-off: pass" in history.stdout and report["certificate"]["number"] in history.stdout
+
+
+def test_the_simulated_station_states_its_cmm_and_example_limits(accepted: tuple[Path, subprocess.CompletedProcess]
+                                                                 ) -> None:
+    """Without a station file the certificate has a verdict with uncertainties: the simulator's CMM statement
+    (2 x its touch noise) and the example limits, each passed with its U inside the limit (ISO 14253-1)."""
+    tmp, done = accepted
+    assert done.returncode == 0, done.stdout + done.stderr
+    report = json.loads((tmp / "run" / "report.json").read_text())
+    instrument = report["instrument"]
+    assert instrument["stated_uncertainty_mm"] == pytest.approx(2 * NOISE_MM)
+    assert "simulator" in instrument["uncertainty_source"] and f"{NOISE_MM:g} mm" in instrument["cmm"]
+    assert instrument["warning"] is None and report["uncertainty"]["cmm_pose_sd"] is not None
+    after = report["uncertainty"]["after"]
+    for check in report["certificate"]["limits"]:
+        assert check["decision"] == "pass"
+        assert check["value"] == after[check["key"]]["value"] and check["U"] == after[check["key"]]["U"] > 0
+        assert check["value"] + check["U"] <= check["limit"]
+    before = report["verification"]["before"]  # the limits mean something: the uncalibrated machine misses them
+    assert all(before[check["key"]] > check["limit"] for check in report["certificate"]["limits"])
+
+
+def test_the_run_ends_with_its_summary(accepted: tuple[Path, subprocess.CompletedProcess]) -> None:
+    """The last thing printed: the verification poses before and after (± U) as report.json has them, what was
+    uploaded, the verdict and where the report and certificate are."""
+    tmp, done = accepted
+    report = json.loads((tmp / "run" / "report.json").read_text())
+    lines = done.stdout.rstrip().splitlines()
+    start = next(i for i, line in enumerate(lines) if f"run {report['run_id']}: complete" in line)
+    assert "holds/retries" in lines[start - 1]  # after the links' statistics, and nothing after it
+    summary = [" ".join(line.split()) for line in lines[start:]]
+    assert summary[1] == "6 verification poses before after"
+    u = report["uncertainty"]
+    for row, (key, label, decimals) in zip(summary[2:6], [("max_position_mm", "max position (mm)", 4),
+                                                         ("rms_position_mm", "RMS position (mm)", 4),
+                                                         ("max_orientation_deg", "max orientation (deg)", 5),
+                                                         ("rms_orientation_deg", "RMS orientation (deg)", 5)],
+                                      strict=True):
+        before, after = u["before"][key], u["after"][key]
+        assert row == (f"{label} {before['value']:.{decimals}f} ± {before['U']:.{decimals}f} "
+                       f"{after['value']:.{decimals}f} ± {after['U']:.{decimals}f}")
+    assert summary[7].startswith("uploaded mode full: joint positions a, b and leg offsets l0")
+    assert report["upload"]["record"]["params_sha256"][:12] in summary[8]
+    assert summary[9] == "verdict pass (4 limits, iso14253-1 decision rule)"
+    assert summary[10] == f"report {tmp / 'run' / 'report.html'} (and report.json)"
+    assert summary[11].startswith(f"certificate {tmp / 'run' / 'certificate.'}") and len(summary) == 12
+
+
+def test_a_limit_the_demo_machine_cannot_meet_fails(strict: tuple[Path, subprocess.CompletedProcess]) -> None:
+    tmp, done = strict
+    assert done.returncode == 4, done.stdout + done.stderr
+    report = json.loads((tmp / "run" / "report.json").read_text())
+    cert = report["certificate"]
+    assert cert["verdict"] == "fail" and [c["key"] for c in cert["limits"]] == ["max_position_mm"]
+    check = cert["limits"][0]
+    assert check["decision"] == "fail" and check["value"] - check["U"] > check["limit"] == 0.0005
+    assert report["instrument"]["stated_uncertainty_mm"] == pytest.approx(0.004)  # the simulator's default 2 x 0.002
+    assert "simulator" in report["instrument"]["uncertainty_source"]
+    summary = " ".join(done.stdout[done.stdout.index(f"run {report['run_id']}: complete"):].split())
+    assert "verdict fail (1 limit, iso14253-1 decision rule); max_position_mm fail" in summary
 
 
 def test_certificate_command_regenerates_both_files(accepted: tuple[Path, subprocess.CompletedProcess],
@@ -213,7 +290,7 @@ def test_the_certificate_opens_in_headless_chromium(accepted: tuple[Path, subpro
         browser.get((run / "certificate.html").resolve().as_uri())
         assert text(browser, "certificate-number") == report["certificate"]["number"]
         assert text(browser, "operator") == OPERATOR
-        assert "no acceptance limits set" in text(browser, "verdict")
+        assert "pass" in text(browser, "verdict")
         rows = browser.find_elements("css selector", "#iso-repeatability tr")
         assert len(rows) == 6 and rows[1].text.startswith("P1")
         assert browser.execute_script("return document.documentElement.scrollWidth <= window.innerWidth")

@@ -62,11 +62,11 @@ def _live_set(state_file: Path) -> tuple[np.ndarray, str | None] | None:
     return np.array(banks["live"], dtype=float), banks.get("comp_live")
 
 
-def _start(out: Path, tmp: Path, run_id: str | None) -> subprocess.Popen[bytes]:
+def _start(out: Path, tmp: Path, run_id: str | None, stdout: int = subprocess.DEVNULL) -> subprocess.Popen[bytes]:
     args = ["--resume", run_id] if run_id else ["--sim", "--sim-config", str(tmp / "sim.toml")]
     env = {**os.environ, "HILCAL_RECORDS": str(tmp / "records.sqlite")}
     return subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", "--yes", "--out", str(out), *args],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+                            stdout=stdout, stderr=subprocess.DEVNULL, env=env)
 
 
 @pytest.mark.timeout(900)
@@ -114,8 +114,9 @@ def test_sigkill_at_seeded_points_then_resume(tmp_path):
     assert kills >= 20, f"only {kills} kill points landed before the run finished"
     assert run_id is not None
 
-    final = _start(out, tmp_path, run_id)
-    assert final.wait(600) == 0
+    final = _start(out, tmp_path, run_id, stdout=subprocess.PIPE)
+    stdout = final.communicate(timeout=600)[0].decode()
+    assert final.returncode == 0, stdout
     db = sqlite3.connect(journal)
     rows = db.execute("SELECT phase, pose_index FROM measurements ORDER BY seq").fetchall()
     assert len(rows) == total and len(set(rows)) == total
@@ -127,6 +128,11 @@ def test_sigkill_at_seeded_points_then_resume(tmp_path):
     assert times["interrupted"] is True and times["estimated_s"] > 0
     assert all(times["phases"][p]["actual_s"] is not None for p in ("measure", "verify", "verify_after"))
     assert report["verification"]["after"]["max_position_mm"] <= 0.05
+    summary = " ".join(stdout[stdout.index(f"run {run_id}: complete"):].split())  # the resumed run ends with it
+    before, after = (report["uncertainty"][when]["max_position_mm"] for when in ("before", "after"))
+    assert (f"max position (mm) {before['value']:.4f} ± {before['U']:.4f} {after['value']:.4f} ± {after['U']:.4f}"
+            in summary)
+    assert "uploaded mode full" in summary and "verdict pass" in summary
     uploaded = report["compensation"]["uploaded_parameters"]
     new = np.concatenate([np.ravel(uploaded["a_mm"]), np.ravel(uploaded["b_mm"]), uploaded["l0_mm"]])
     assert report["compensation"]["compensation_block"]["scale_ppm"][0] == pytest.approx(-400 / 1.0004, abs=15)

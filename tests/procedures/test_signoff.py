@@ -11,9 +11,10 @@ import pytest
 
 from hilcal.robot import default_robot
 from procedures.acceptance import AcceptanceTest, check_acceptance, make_acceptance
+from procedures.certificate import signoff_settings
 from procedures.plan import PlanError, estimate_plan, make_plan
 from procedures.signoff import SignoffFileError, load_signoff, signoff_from_station
-from procedures.station import load_station, save_station
+from procedures.station import load_station, save_station, station_from_dict
 from procedures.timing import TimingSection
 
 ROBOT = default_robot()
@@ -62,6 +63,37 @@ def test_station_with_sign_off_settings_round_trips(tmp_path: Path) -> None:
     save_station(station, again)
     assert load_station(again) == station
 
+
+
+def _sim_station():
+    """A station as `hilcal run --sim` hands it over: the simulator's CMM statement and example limits."""
+    return station_from_dict({"can": {"interface": "virtual", "channel": "x"}, "modbus": {"host": "127.0.0.1"},
+                              "cmm": {"url": "socket://127.0.0.1:1", "alignment": [0.0] * 6,
+                                      "identity": "simulated CMM", "stated_uncertainty_mm": 0.006},
+                              "acceptance": {"max_position_mm": 0.05, "rms_position_mm": 0.02}})
+
+
+def test_sim_run_signs_off_with_the_simulated_station_unless_a_station_file_says_otherwise(tmp_path: Path) -> None:
+    alone = signoff_settings({"sim": True, "station_path": None}, _sim_station())
+    assert alone.cmm.stated_uncertainty_mm == 0.006 and alone.cmm.identity == "simulated CMM"
+    assert "simulator" in alone.cmm_uncertainty_source
+    assert alone.acceptance.limits() == {"max_position_mm": 0.05, "rms_position_mm": 0.02}
+
+    strict = tmp_path / "strict.toml"  # limits of its own, no [cmm]: the simulator's statement still holds
+    strict.write_text("name = \"strict bay\"\n[acceptance]\nmax_position_mm = 0.0005\n")
+    settings = signoff_settings({"sim": True, "station_path": str(strict)}, _sim_station())
+    assert settings.acceptance.limits() == {"max_position_mm": 0.0005} and settings.name == "strict bay"
+    assert settings.cmm.stated_uncertainty_mm == 0.006 and "simulator" in settings.cmm_uncertainty_source
+
+    full = tmp_path / "station.toml"  # the file's CMM statement wins, and the source says so
+    full.write_text(STATION)
+    settings = signoff_settings({"sim": True, "station_path": str(full)}, _sim_station())
+    assert settings.cmm.stated_uncertainty_mm == 0.004 and settings.cmm.identity == "Leitz PMM-C, serial 4711"
+    assert settings.cmm_uncertainty_source is None and settings.acceptance.decision_rule == "simple"
+
+    timing_only = tmp_path / "timing.toml"  # a file without [acceptance] replaces the example limits with none
+    timing_only.write_text("[timing]\nsettle_s = 0.0\n")
+    assert signoff_settings({"sim": True, "station_path": str(timing_only)}, _sim_station()).acceptance.limits() == {}
 
 @pytest.mark.parametrize(("text", "field"), [
     ("[acceptance]\nrp_position_mm = -1.0\n", "acceptance.rp_position_mm"),
