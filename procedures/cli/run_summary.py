@@ -70,11 +70,25 @@ def uploaded_lines(report: Mapping[str, Any]) -> list[str]:
     sha = record.get("params_sha256") or upload.get("sha256")
     lines = [f"mode {mode or 'not recorded'}" + (f": {MODES[mode]}" if mode in MODES else ""),
              outcome + readback + (f" (sha256 {sha[:12]})" if isinstance(sha, str) else "")]
-    physics = report.get("physics")
-    corrected = physics.get("corrected") if isinstance(physics, Mapping) else None
-    if isinstance(corrected, list) and corrected:
-        lines.append("corrected: " + ", ".join(str(c) for c in corrected))
+    physics = report.get("physics") if isinstance(report.get("physics"), Mapping) else {}
+    block = (report.get("compensation") or {}).get("compensation_block")
+    if block:
+        lines.append("and the compensation block, one transaction with the geometry"
+                     + {True: "; read back: matches", False: "; read back: DIFFERS"}.get(
+                         record.get("compensation_readback_match"), ""))
+    for key, label in (("corrected", "corrected"), ("not_corrected", "not corrected")):
+        items = physics.get(key) if isinstance(physics.get(key), list) else []
+        names = [_effect_name(c) for c in items]
+        if names:
+            lines.append(f"{label}: " + ", ".join(names))
     return lines
+
+
+def _effect_name(c: Any) -> str:
+    """An effect of the physics step as the summary names it."""
+    if not isinstance(c, Mapping):
+        return str(c)
+    return str(c.get("title") or c.get("effect")) + (" (set-up fault)" if c.get("grade") == "fault" else "")
 
 
 def verdict_text(report: Mapping[str, Any]) -> Text:
