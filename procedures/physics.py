@@ -131,6 +131,9 @@ def decide(rec: Recording, robot: Robot, outcome: CalibrationOutcome, info: Cont
                                      force_reading=can_hold and info.force_reading,
                                      temperature_reading=can_hold and info.temperature_reading)
     joint_problems = bound_violations(loadable.geometry_x, joint_bound_mm, offset_bound_mm)
+    if diag.wiring is not None and diag.wiring.problem:
+        joint_problems.insert(0, f"the leg readings do not follow the legs ({diag.wiring.sentence()}): check the "
+                                 "controller's feedback wiring before any upload")
     if not diag.final_fit.converged:
         joint_problems.insert(0, f"the fit with the effects did not converge: {diag.final_fit.message}")
     checks = {n.effect: n.check for n in diag.named}

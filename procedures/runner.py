@@ -43,6 +43,7 @@ from procedures.calibration_procedure import (
     RunOptions,
     calibration_procedure,
     recording_from_rows,
+    to_parameter_set,
 )
 from procedures.certificate import (
     SignoffContext,
@@ -232,6 +233,11 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
     )
     json_path, _ = write_run_report(out_dir, report)
     journal.event("report", path=str(json_path))
+    if comp is not None:  # what the run uploaded (or would have), loadable again with `hilcal upload`
+        controller_set = to_parameter_set(comp.parameters).model_dump()
+        if result.block is not None:
+            controller_set["compensation"] = result.block.model_dump()
+        (out_dir / "controller_set.json").write_text(json.dumps(controller_set, indent=1))
     return json_path
 
 

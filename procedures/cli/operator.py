@@ -134,7 +134,8 @@ def _identity(station: Path) -> dict[str, str | None]:
 
 
 def upload(
-    params_file: Annotated[Path, typer.Argument(help="parameter set JSON {a_mm, b_mm, l0_mm}")],
+    params_file: Annotated[Path, typer.Argument(help="parameter set JSON {a_mm, b_mm, l0_mm} with an optional "
+                                                "compensation block (a run's controller_set.json)")],
     station: Annotated[Path, typer.Option(help="station TOML (its \\[modbus] section is used)")],
     save: Annotated[bool, typer.Option(help="also save to non-volatile memory")] = False,
     yes: Annotated[bool, typer.Option("--yes", help="do not ask for confirmation")] = False,

@@ -13,6 +13,7 @@ from typing import Any, Literal
 from pydantic import ValidationError
 
 from drivers.controller_modbus import (
+    CompensationBlock,
     ControllerParams,
     ParameterSet,
     ParameterValidationError,
@@ -41,6 +42,12 @@ PARAMETER_NAMES = tuple(_parameter_names())
 
 def read_parameter_file(path: Path | str) -> ParameterSet:
     """A parameter JSON file {a_mm: 6x3, b_mm: 6x3, l0_mm: 6}; ParameterFileError with every problem named."""
+    return read_controller_set(path)[0]
+
+
+def read_controller_set(path: Path | str) -> tuple[ParameterSet, CompensationBlock | None]:
+    """A parameter JSON file {a_mm, b_mm, l0_mm[, compensation: {...}]} (a run's controller_set.json): the geometry
+    and, when the file has one, the compensation block (docs/protocols.md); ParameterFileError naming every problem."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -52,11 +59,20 @@ def read_parameter_file(path: Path | str) -> ParameterSet:
         raise ParameterFileError(f"{path}: not JSON: {err.msg} at line {err.lineno} column {err.colno}") from None
     if not isinstance(data, dict):
         raise ParameterFileError(f"{path}: expected a JSON object with keys a_mm, b_mm, l0_mm")
+    data = dict(data)
+    block = data.pop("compensation", None)
     try:
-        return ParameterSet.model_validate(data)
+        params = ParameterSet.model_validate(data)
     except ValidationError as err:
         problems = "; ".join(f"{_location(e['loc'])}: {e['msg']}" for e in err.errors())
         raise ParameterFileError(f"{path}: not a valid parameter set (indices from 0): {problems}") from None
+    if block is None:
+        return params, None
+    try:
+        return params, CompensationBlock.model_validate(block)
+    except ValidationError as err:
+        problems = "; ".join(f"compensation.{_location(e['loc'])}: {e['msg']}" for e in err.errors())
+        raise ParameterFileError(f"{path}: not a valid compensation block (indices from 0): {problems}") from None
 
 
 def _location(loc: tuple[int | str, ...]) -> str:
@@ -118,7 +134,7 @@ def upload_parameter_file(
     ParamsError (``err.record`` holds the UploadRecord). `machine` and `station` are recorded with each attempt.
     """
     try:
-        new = read_parameter_file(path_json)
+        new, block = read_controller_set(path_json)
     except ParameterFileError as err:
         err.record = _local_record(params_client, "refused", f"ParameterFileError: {err}")
         records.record_upload(err.record, operator, machine=machine, station=station)
@@ -126,25 +142,31 @@ def upload_parameter_file(
     sha = records.add_parameter_set(new.model_dump(), "file")
     try:
         live = params_client.read_live()
+        live_block = None if block is None else params_client.read_live_compensation()
     except ParamsError as err:
         err.record = err.record or _local_record(params_client, "failed", f"{type(err).__name__}: {err}", sha)
         records.record_upload(err.record, operator, machine=machine, station=station)
         raise
     records.add_parameter_set(live.model_dump(), "controller")
     diff = parameter_diff(live, new)
-    result: dict[str, Any] = {"record": None, "diff": diff, "changed": bool(diff), "file_sha256": sha}
-    if not diff and not save:
+    block_changes = block is not None and block.as_float32() != live_block
+    result: dict[str, Any] = {"record": None, "diff": diff, "changed": bool(diff) or block_changes,
+                              "file_sha256": sha, "compensation_changes": block_changes}
+    if not result["changed"] and not save:
         return result
-    action = (f"upload {len(diff)} changed parameters" if diff else "save the live set (unchanged)") + (
-        " and save them to non-volatile memory" if diff and save else "")
-    prompt = f"{format_diff(diff)}\n\n{action} on {params_client.endpoint}?"
+    what = f"{len(diff)} changed parameters" + (" and the compensation block" if block_changes else "")
+    action = (f"upload {what}" if result["changed"] else "save the live set (unchanged)") + (
+        " and save them to non-volatile memory" if result["changed"] and save else "")
+    shown = format_diff(diff) + ("\ncompensation block: the file's replaces the controller's" if block_changes else "")
+    prompt = f"{shown}\n\n{action} on {params_client.endpoint}?"
     if not yes and not confirm(prompt):
         declined = UploadDeclined(f"{action} on {params_client.endpoint}: declined by the operator; nothing written")
         declined.record = _local_record(params_client, "refused", f"UploadDeclined: {declined}", sha)
         records.record_upload(declined.record, operator, machine=machine, station=station)
         raise declined
     try:
-        record = params_client.upload(new, save=save) if diff else params_client.save()
+        record = (params_client.upload(new, save=save, compensation=block if block_changes else None)
+                  if result["changed"] else params_client.save())
     except ParamsError as err:
         err.record = err.record or _local_record(params_client, "failed", f"{type(err).__name__}: {err}", sha)
         records.record_upload(err.record, operator, machine=machine, station=station)

@@ -23,6 +23,16 @@ import pytest
 
 from tests.cli.browser_support import LATENCIES_S, chromium, free_port, require_chromium, text, wait_for
 
+SCALE_FAULT = """
+[rig.effects.sensor_scale]
+enabled = true
+gain_error_ppm = [2500.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+[rig.effects.leg_compliance]
+enabled = true
+c_mm_per_kn = 0.006
+"""
+"""Leg 1's transducer configured 0.25 % long and legs that sag: the approval must open with what the run found."""
+
 
 @pytest.fixture(autouse=True)
 def _browser_present():
@@ -154,6 +164,8 @@ def _answer_questions(browser, operator: str, checks: dict) -> str:
             browser.find_element("id", "operator-name").send_keys(operator)
         elif title == "Approve the parameter upload":
             checks["diff_rows"] = len(browser.find_elements("css selector", "#upload-diff tr")) - 1
+            checks["physics"] = text(browser, "upload-physics")
+            checks["block"] = text(browser, "upload-block")
             checks["prediction"] = text(browser, "upload-prediction")
             checks["disabled_before_confirm"] = not yes.is_enabled()
             browser.find_element("id", "upload-confirm").click()
@@ -175,10 +187,15 @@ def test_a_whole_run_driven_from_the_browser_alone(tmp_path):
         with chromium() as browser:
             port = free_port()
             url = f"http://127.0.0.1:{port}/"
-            proc, log = _start(tmp_path, port, "--sim", "--out", str(out))
+            (tmp_path / "sim.toml").write_text(SCALE_FAULT)
+            proc, log = _start(tmp_path, port, "--sim", "--sim-config", str(tmp_path / "sim.toml"), "--out", str(out))
             browser.get(url)
             outcome = _answer_questions(browser, "B. Rowser", checks)
             assert "complete" in outcome, outcome
+            physics = checks["physics"]  # the approval opens with the findings, faults first
+            assert physics.index("Leg 1 reads 0.25% long") < physics.index("sag under the platform's weight")
+            assert "the upload corrects the reading scale of each leg; check its transducer" in physics
+            assert checks["block"].startswith("scale -2"), checks["block"]
             assert checks["missing_name"] and checks["disabled_before_confirm"]
             assert checks["diff_rows"] > 6, "the diff lists the changed parameters"
             assert "Predicted after the upload" in checks["prediction"] and "max" in checks["prediction"]

@@ -220,6 +220,28 @@ def test_upload_file_shows_diff_commits_and_records(sim: Sim, db: Records, robot
     assert db.parameter_set(sha_of(f32(nominal(robot))))["source"] == "controller"
 
 
+def test_a_file_with_a_compensation_block_uploads_both_and_rollback_restores_both(
+        sim: Sim, db: Records, robot: Robot, tmp_path: Path) -> None:
+    new = nominal(robot).copy()
+    new[36] += 0.1
+    block = {"scale_ppm": [-2990.0, 0, 0, 0, 0, 0], "backlash_mm": [0.0] * 6, "compliance_mm_per_kn": [0.006] * 6,
+             "compliance_mm_per_kn_m": [0.0] * 6, "thermal_ppm_per_k": [0.0] * 6, "table_start_mm": [0.0] * 6,
+             "table_end_mm": [0.0] * 6, "table_mm": [[] for _ in range(6)]}
+    prompts: list[str] = []
+    result = upload_parameter_file(sim.params, write_file(tmp_path, {**as_file_dict(new), "compensation": block}),
+                                   db, "ann", save=False, yes=False, confirm=lambda t: prompts.append(t) or True)
+    assert result["compensation_changes"] and "compensation block" in prompts[0]
+    assert result["record"]["compensation_readback_match"] is True
+    assert sim.controller.live_compensation()["scale_ppm"][0] == pytest.approx(-2990.0)
+    rollback_controller(sim.params, db, "ann")
+    assert sim.controller.live_compensation()["scale_ppm"][0] == 0.0
+    np.testing.assert_array_equal(sim.controller.live_parameters(), f32(nominal(robot)))
+    bad = write_file(tmp_path, {**as_file_dict(new), "compensation": {**block, "scale_ppm": [1e6] * 6}}, "bad.json")
+    with pytest.raises(ParameterFileError, match="compensation"):
+        upload_parameter_file(sim.params, bad, db, "ann", save=False, yes=True, confirm=lambda _: True)
+    assert sim.controller.live_compensation()["scale_ppm"][0] == 0.0
+
+
 def test_upload_with_yes_does_not_ask_and_saves(sim: Sim, db: Records, robot: Robot, tmp_path: Path) -> None:
     new = nominal(robot) + 0.125
 
@@ -305,7 +327,8 @@ def test_refused_upload_while_enabled_is_recorded(sim: Sim, db: Records, robot: 
 def test_unchanged_file_is_not_reuploaded(sim: Sim, db: Records, robot: Robot, tmp_path: Path) -> None:
     path = write_file(tmp_path, nominal(robot))
     result = upload_parameter_file(sim.params, path, db, "ann", save=False, yes=True, confirm=lambda _: True)
-    assert result == {"record": None, "diff": [], "changed": False, "file_sha256": sha_of(f32(nominal(robot)))}
+    assert result == {"record": None, "diff": [], "changed": False, "compensation_changes": False,
+                      "file_sha256": sha_of(f32(nominal(robot)))}
     assert sim.server.writes == [] and db.last_upload() is None
     saved = upload_parameter_file(sim.params, path, db, "ann", save=True, yes=True, confirm=lambda _: True)
     assert saved["record"]["operation"] == "save" and saved["record"]["outcome"] == "saved"

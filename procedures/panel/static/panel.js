@@ -174,12 +174,43 @@ function spread(m) {
     `RMS ${fmt(m.rms_orientation_deg, 5)}°` : "-";
 }
 
+function physicsDetail(p) {
+  if (!p) return "";
+  if (p.enabled === false) {
+    return `<p id="upload-physics">Physics not diagnosed (--physics off): the geometry alone is uploaded.</p>`;
+  }
+  const items = [...(p.corrects || []), ...(p.leaves || []), ...(p.by_hand || []).map((t) => `Set by hand: ${t}`)];
+  if ((p.explained || []).length) {
+    items.push(`The geometric fit alone needed ${p.explained.join("; ")}: the physics above explains it, so the ` +
+      "geometry fitted together with it is the one uploaded.");
+  }
+  return `<div id="upload-physics"><p><b>What this run's recording shows beyond the geometry</b> (faults first):</p>
+    <ul>${items.map((t) => `<li>${esc(t)}</li>`).join("")}</ul></div>`;
+}
+
+function blockSummary(b) {
+  if (!b) return "none: the controller keeps its own";
+  const terms = [["scale_ppm", "scale", "ppm", 1], ["backlash_mm", "backlash", "µm", 1000],
+    ["compliance_mm_per_kn", "compliance", "µm/kN", 1000], ["compliance_mm_per_kn_m", "compliance per metre",
+      "µm/(kN m)", 1000], ["thermal_ppm_per_k", "thermal", "ppm/K", 1]];
+  const parts = terms.filter(([k]) => (b[k] || []).some((v) => v !== 0)).map(([k, label, unit, f]) =>
+    `${label} ${b[k].map((v) => fmt(v * f, 1)).join(", ")} ${unit}`);
+  const points = ((b.table_mm || [[]])[0] || []).length;
+  if (points) parts.push(`stroke table of ${points} points per leg`);
+  return parts.join("; ") || "corrects nothing";
+}
+
 function uploadDetail(d) {
   const rows = (d.diff || []).map((r) => `<tr><td>${esc(r.name)}</td><td>${fmt(r.live_mm, 4)}</td>` +
     `<td>${fmt(r.new_mm, 4)}</td><td>${(r.delta_mm >= 0 ? "+" : "") + fmt(r.delta_mm, 4)}</td></tr>`).join("");
-  return `<table class="kv" id="upload-prediction">
+  const geometryOnly = d.physics && d.physics.enabled !== false && d.predicted_geometry_only ?
+    `<tr><th>Predicted with the geometry alone</th><td id="predicted-geometry-only">${brief(d.predicted_geometry_only)}
+      </td></tr>` : "";
+  return `${physicsDetail(d.physics)}<table class="kv" id="upload-prediction">
       <tr><th>Verification poses now (measured)</th><td>${brief(d.measured_before)}</td></tr>
       <tr><th>Predicted after the upload</th><td id="predicted-after">${brief(d.predicted_after)}</td></tr>
+      ${geometryOnly}
+      <tr><th>Compensation block</th><td id="upload-block">${esc(blockSummary(d.compensation_block))}</td></tr>
       <tr><th>Basis</th><td>${esc(d.predicted_basis)}</td></tr>
       <tr><th>Parameter uncertainty in the workspace</th><td id="model-uncertainty">${spread(d.model_uncertainty)}
         <span class="sub">${esc(d.model_uncertainty_basis || "no covariance for this estimator")}</span></td></tr>
