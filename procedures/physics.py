@@ -127,9 +127,10 @@ def decide(rec: Recording, robot: Robot, outcome: CalibrationOutcome, info: Cont
                       "controller's compensation block stays as it is."],
             predicted_with=without, predicted_without=without, diagnosis=diag)
     can_hold = info.compensation
+    # without a block, what a block could hold is listed as such (not as a reading the controller lacks)
     loadable = loadable_compensation(diag, robot, info.l0_mm, live=info.live_block,
-                                     force_reading=can_hold and info.force_reading,
-                                     temperature_reading=can_hold and info.temperature_reading)
+                                     force_reading=info.force_reading or not can_hold,
+                                     temperature_reading=info.temperature_reading or not can_hold)
     joint_problems = bound_violations(loadable.geometry_x, joint_bound_mm, offset_bound_mm)
     if diag.wiring is not None and diag.wiring.problem:
         joint_problems.insert(0, f"the leg readings do not follow the legs ({diag.wiring.sentence()}): check the "
