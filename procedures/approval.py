@@ -31,16 +31,23 @@ def upload_sha256(params: ParameterSet, block: CompensationBlock | None) -> str:
     return hashlib.sha256(bytes.fromhex(params.sha256()) + bytes.fromhex(block.sha256())).hexdigest()
 
 
+def model_covariance(outcome: CalibrationOutcome, estimator: str, physics: PhysicsDecision | None
+                     ) -> tuple[np.ndarray | None, str]:
+    """The uploaded geometry's 42 x 42 covariance and what it is: the geometric fit's, or the fit's with the effects
+    when that is the geometry uploaded (the geometric fit's is inflated by the physics it left out)."""
+    ident = outcome.identification
+    if physics is not None and physics.diagnosis is not None and physics.geometry_source != "the geometric fit":
+        final = physics.diagnosis.final_fit
+        return (None if final.covariance is None else final.covariance[:42, :42],
+                "the geometry's (fitted together with the effects)")
+    return (ident.covariance if ident.model == "42" else None), f"the {estimator} parameters'"
+
+
 def approval_detail(before: ParameterSet, new: ParameterSet, block: CompensationBlock | None, comp: Compensation,
                     outcome: CalibrationOutcome, estimator: str, physics: PhysicsDecision | None, robot: Robot,
                     samples: np.ndarray) -> dict[str, Any]:
     """Every changed parameter, the block, the physics in sentences and what can be predicted (module docstring)."""
-    ident = outcome.identification
-    covariance, source = ident.covariance if ident.model == "42" else None, f"the {estimator} parameters'"
-    if physics is not None and physics.diagnosis is not None and physics.geometry_source != "the geometric fit":
-        final = physics.diagnosis.final_fit
-        covariance = None if final.covariance is None else final.covariance[:42, :42]
-        source = "the geometry's (fitted together with the effects)"
+    covariance, source = model_covariance(outcome, estimator, physics)
     spread = None
     if covariance is not None and np.all(np.isfinite(covariance)):
         spread = model_uncertainty(robot, covariance, samples).as_json()

@@ -134,13 +134,16 @@ def _iso_section(test: AcceptanceTest | None, rows: list[dict], cmm_cov: np.ndar
 
 
 def _model_spread(robot: Robot, plan: Any, result: Any) -> dict[str, Any] | None:
-    """The chosen parameters' covariance carried to the approval's 64 workspace poses (None without one)."""
+    """The uploaded geometry's covariance carried to the approval's 64 workspace poses (None without one)."""
     from hilcal.planning.design import verification_poses
+    from procedures.approval import model_covariance
 
-    ident = result.outcomes[result.chosen].identification if result.outcomes else None
-    if ident is None or ident.covariance is None or ident.model != "42" or not np.all(np.isfinite(ident.covariance)):
+    if not result.outcomes:
         return None
-    return model_uncertainty(robot, ident.covariance, verification_poses(robot, 64, plan.seed + 1)).as_json()
+    covariance, _ = model_covariance(result.outcomes[result.chosen], result.chosen, result.physics)
+    if covariance is None or not np.all(np.isfinite(covariance)):
+        return None
+    return model_uncertainty(robot, covariance, verification_poses(robot, 64, plan.seed + 1)).as_json()
 
 
 def signoff_section(ctx: SignoffContext, robot: Robot, plan: Any, result: Any, pre_rows: list[dict],
@@ -178,6 +181,8 @@ def signoff_section(ctx: SignoffContext, robot: Robot, plan: Any, result: Any, p
         "instrument": instrument,
         "environment": _environment([*pre_rows, *result.after_rows, *result.acceptance_rows]),
         "method": {"model": None if ident is None else ident.model, "estimator": result.chosen,
+                   "effects": [] if result.physics is None or result.block is None else [
+                       c.title for c in result.physics.loadable.corrected],
                    "plan_sha256": plan.sha256(), "n_measure_rows": len(measure), "n_verify_poses": len(verify),
                    "acceptance_sha256": None if ctx.acceptance is None else ctx.acceptance.sha256()},
         "uncertainty": {

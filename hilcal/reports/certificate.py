@@ -212,7 +212,9 @@ platform, hardware in the loop (hilcal)</div></div>
      f"U = {_num(stated, 4)} mm (k = 2) per sphere-centre coordinate ({_esc(inst.get('uncertainty_source'))})"),
     ("its calibration due", due),
     ("temperature", temperature),
-    ("method", f"{_esc(method.get('model'))}-parameter rigid geometric model, {_esc(method.get('estimator'))} "
+    ("method", f"{_esc(method.get('model'))}-parameter rigid geometric model"
+               + (f" with {_esc(', '.join(method['effects']))} compensated in the controller"
+                  if method.get("effects") else "") + f", {_esc(method.get('estimator'))} "
                f"estimator; {_esc(method.get('n_measure_rows'))} measurement rows, "
                f"{_esc(method.get('n_verify_poses'))} held-out verification poses"),
     ("pose plan SHA-256", f"<code>{_esc(method.get('plan_sha256'))}</code>"),
