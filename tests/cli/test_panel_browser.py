@@ -22,6 +22,7 @@ from pathlib import Path
 import pytest
 
 from tests.cli.browser_support import LATENCIES_S, chromium, free_port, require_chromium, text, wait_for
+from tests.cli.sim_speed import INSTANT_SIM
 
 SCALE_FAULT = """
 [rig.effects.sensor_scale]
@@ -187,7 +188,7 @@ def test_a_whole_run_driven_from_the_browser_alone(tmp_path):
         with chromium() as browser:
             port = free_port()
             url = f"http://127.0.0.1:{port}/"
-            (tmp_path / "sim.toml").write_text(SCALE_FAULT)
+            (tmp_path / "sim.toml").write_text(INSTANT_SIM + SCALE_FAULT)  # the page drives it; its pace is not tested
             proc, log = _start(tmp_path, port, "--sim", "--sim-config", str(tmp_path / "sim.toml"), "--out", str(out))
             browser.get(url)
             outcome = _answer_questions(browser, "B. Rowser", checks)
