@@ -10,11 +10,11 @@ of machine time (its move from the current pose under the motion rules, settle a
 - then: the fall of the average predicted position variance over the verify poses (I-optimality aimed at them:
   what the stopping rule predicts and the verification measures; smoother than the maximum, whose worst pose
   changes from row to row);
-- while the diagnosis lacks spread, and after the screening suspects physics: Ds-optimal for the 12 load and stroke
-  terms given the geometry.
+- until the diagnosis has its minimum spread, that gain plus 1/12 of the Ds gain of the 12 load and stroke terms
+  (the geometry fitted): a compound criterion; once the screening suspects physics, the Ds gain alone.
 The first pose is measured 1 + repeats times in a row (the noise yardstick); it is chosen among the candidates with
 room for a repeat's retreat. The selection uses the nominal Jacobians and unit noise, so it depends on the data
-only through the mode; the noise sets the prediction and the stop (``hilcal.planning.stopping``).
+only through the screening; the noise sets the prediction and the stop (``hilcal.planning.stopping``).
 """
 
 from __future__ import annotations
