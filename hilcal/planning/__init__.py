@@ -11,26 +11,30 @@ A new planning rule (a design criterion, a motion constraint, an ordering heuris
 job here and is exported below if commands or procedures call it.
 """
 
+import importlib
+
 from hilcal.planning.budget import BudgetError, budgeted_design, predicted_verify_error
 from hilcal.planning.design import Design, coordinate_exchange, paper_pose_sets, verification_poses
-from hilcal.planning.forecast import Forecast, TimeRange, forecast, time_range
 from hilcal.planning.machine_time import MotionRules, MotionTiming, TimeEstimate, estimate_route
 from hilcal.planning.ordering import RouteOrder, order_route
-from hilcal.planning.prediction import PoseNoise, VerifyPrediction
-from hilcal.planning.sequential import (
-    AdaptiveProblem,
-    AdaptiveSettings,
-    AdaptiveState,
-    Decision,
-    PoseChoice,
-    adaptive_problem,
-    decide,
-    next_pose,
-    replay,
-    start,
-    update,
-)
-from hilcal.planning.stopping import DiagnosisMinimum, Screening, StopReason
+
+_ADAPTIVE = {
+    "hilcal.planning.forecast": ("Forecast", "TimeRange", "forecast", "time_range"),
+    "hilcal.planning.prediction": ("PoseNoise", "VerifyPrediction"),
+    "hilcal.planning.sequential": ("AdaptiveProblem", "AdaptiveSettings", "AdaptiveState", "Decision", "PoseChoice",
+                                   "adaptive_problem", "decide", "next_pose", "replay", "start", "update"),
+    "hilcal.planning.stopping": ("DiagnosisMinimum", "Screening", "StopReason"),
+}
+"""The adaptive plan's names, imported on first use: they need scipy.optimize (identification), which would add
+about half a second to every command that only builds or checks a fixed plan."""
+
+
+def __getattr__(name: str) -> object:
+    for module, names in _ADAPTIVE.items():
+        if name in names:
+            return getattr(importlib.import_module(module), name)
+    raise AttributeError(f"module 'hilcal.planning' has no attribute {name!r}")
+
 
 __all__ = [
     "AdaptiveProblem",

@@ -184,3 +184,18 @@ def test_bad_settings_and_rows_are_refused(robot, run):
     problem, state, _, _ = run
     with pytest.raises(ValueError, match="finite"):
         update(problem, state, robot.home, np.full(6, np.nan), robot.home)
+
+
+def test_the_room_exports_the_adaptive_plan_without_importing_it_up_front():
+    import subprocess
+    import sys
+
+    import hilcal.planning as planning
+
+    assert all(hasattr(planning, name) for name in planning.__all__)
+    assert planning.decide is decide and planning.AdaptiveSettings is AdaptiveSettings
+    with pytest.raises(AttributeError, match="no attribute 'nothing'"):
+        planning.nothing  # noqa: B018
+    probe = "import sys, hilcal.planning; print('hilcal.planning.sequential' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                          check=True).stdout.strip() == "False"
