@@ -261,8 +261,9 @@ def _criterion(runs: list[dict[str, Any]], stats: dict[str, Any], replicate: dic
     longer = ""
     if longest is not None:
         s = _stats(runs, longest, target_mm)
-        longer = (f" Measuring longer closes the gap slowly: at {float(longest.split('_')[1]):.0%} per row the runs "
-                  f"measure {s['rows_mean']:.1f} rows ({s['time_mean']:.2f} × the time) and are within 10 % in "
+        fraction = float(longest.split("_")[1]) * 100
+        longer = (f" Measuring longer closes the gap slowly: at {fraction:g} % per row the runs measure"
+                  f" {s['rows_mean']:.1f} rows ({s['time_mean']:.2f} × the time) and are within 10 % in "
                   f"{_pct(s['within'], s['n'])}.")
     return f"""
 ## What the 10 % criterion measures here
@@ -285,7 +286,7 @@ def _power(context: dict[str, Any]) -> str:
             f"{p['fixed']['noncentrality']:.0f} |" for c, p in power.items()]
     first = next(iter(power.values()))
     values = list(power.values())
-    half = values[-1]["adaptive"]["power"]
+    full, half = values[0]["adaptive"]["power"], values[-1]["adaptive"]["power"]
     return f"""
 ## Why the diagnosis' minimum is where it is
 
@@ -298,8 +299,8 @@ model, the CMM's noise through the sphere registration; the load test's level 0.
 |---|---|---|---|
 {chr(10).join(rows)}
 
-A compliance of realistic size (0.004-0.006 mm/kN, the concealed one) is flagged with the power in the first row;
-one of half that size, which the fixed plan's diagnosis still names at its 5 µm CMM noise (docs/diagnosis_study.md,
+A compliance of realistic size (0.004-0.006 mm/kN, the concealed one) is flagged with power {full:.3f}; one of half
+that size, which the fixed plan's diagnosis still names at its 5 µm CMM noise (docs/diagnosis_study.md,
 scale 0.5), is flagged with power {half:.2f} only: otherwise the adaptive run stops without measuring on for it. A
 larger minimum buys that back at the price of time.
 """
