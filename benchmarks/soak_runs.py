@@ -40,11 +40,11 @@ class Condition:
     hogs: int = 0
     kills: int = 0
 
-    def sim_config(self, seed: int, work: Path) -> str:
+    def sim_config(self, seed: int, work: Path, gaps_per_min: float = 20.0) -> str:
         rng = random.Random(seed * 7 + len(self.name))
         lines = ["[rig]", f"seed = {seed}", "[controller.can_faults]", f'gap_log = "{work / "gaps.jsonl"}"']
         if self.name == "heartbeat_gaps":
-            lines += ["gaps_per_min = 20.0", "gap_min_s = 0.05", "gap_max_s = 0.5", f"seed = {seed}"]
+            lines += [f"gaps_per_min = {gaps_per_min}", "gap_min_s = 0.05", "gap_max_s = 0.5", f"seed = {seed}"]
         if self.name == "modbus_drops":
             lines += ["[controller.modbus_faults]", f"drop_after_writes = {rng.randint(1, 5)}",
                       f"execute_dropped_write = {'true' if rng.random() < 0.5 else 'false'}"]
@@ -116,19 +116,22 @@ def _run_id(out: Path) -> str | None:
 
 
 def soak_run(condition: Condition, seed: int, work: Path, *, kill_window_s: tuple[float, float] = (4.0, 60.0),
-             timeout_s: float = 900.0, extra_sim_config: str = "") -> SoakRun:
+             timeout_s: float = 900.0, extra_sim_config: str = "", gaps_per_min: float = 20.0,
+             extra_run_args: tuple[str, ...] = ()) -> SoakRun:
     """One full run (resumed after each SIGKILL) and its bookkeeping; never raises for a failed run.
 
-    ``extra_sim_config`` is appended to the condition's simulator TOML (the tests make the CMM probe at once where
-    the disturbance is counted in commands, not in seconds)."""
+    ``extra_sim_config`` is appended to the condition's simulator TOML (the tests run the servo and the CMM at once:
+    their checks count what happened, not how long it took); ``gaps_per_min`` sets how often the link gaps come;
+    ``extra_run_args`` go to the new run's command line (the tests pass a plan made once)."""
     work.mkdir(parents=True, exist_ok=True)
-    (work / "sim.toml").write_text(condition.sim_config(seed, work) + extra_sim_config)
+    (work / "sim.toml").write_text(condition.sim_config(seed, work, gaps_per_min) + extra_sim_config)
     out = work / "run"
     rng = random.Random(1000 + seed)
     result = SoakRun(condition.name, seed)
     hogs = _hogs(condition.hogs, timeout_s)
     t0 = time.monotonic()
-    new_run = ["--sim", "--sim-config", str(work / "sim.toml"), "--seed", str(seed), "--out", str(out)]
+    new_run = ["--sim", "--sim-config", str(work / "sim.toml"), "--seed", str(seed), "--out", str(out),
+               *extra_run_args]
     try:
         args = new_run
         for attempt in range(condition.kills + 1):

@@ -1,6 +1,7 @@
 """Simulator and station settings for runs whose test does not depend on machine time: the servo moves 1e5 times
 faster than real time, the CMM probes at once and the station waits no settle time (its servo has settled long
-before), so a whole `hilcal run --sim` costs the engine, driver and protocol work only (docs/benchmarks_run.md).
+before), so a whole `hilcal run --sim` costs the engine, driver and protocol work only (docs/benchmarks_run.md);
+tests/cli/conftest.py's `instant_plan` is the default plan without the settle wait.
 The rig's clock follows the servo's, so its temperature is held (a drift of 1 K/h would be tens of K per second)."""
 
 from __future__ import annotations

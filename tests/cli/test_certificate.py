@@ -62,7 +62,7 @@ def _hilcal(*args: str, records: Path) -> subprocess.CompletedProcess[str]:
 @pytest.fixture(scope="module")
 def small_plan(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("plan") / "plan.json"
-    save_plan(make_plan(default_robot(), 0, n_measure=12, n_verify=6, timing=SIM_TIMING.timing()), path)
+    save_plan(make_plan(default_robot(), 0, n_measure=12, n_verify=6, settle_s=0.0, timing=SIM_TIMING.timing()), path)
     return path
 
 

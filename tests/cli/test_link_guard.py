@@ -16,6 +16,7 @@ import cantools
 import pytest
 
 import hilcal.protocols
+from tests.cli.sim_speed import INSTANT_SIM
 
 DBC = cantools.database.load_file(str(Path(hilcal.protocols.__file__).with_name("controller.dbc")))
 HOST_FRAMES = {msg.frame_id: msg.name for msg in DBC.messages if "HOST" in msg.senders}
@@ -32,12 +33,12 @@ def _run(args: list[str], tmp: Path) -> subprocess.CompletedProcess[str]:
 
 
 def _config(tmp: Path, **gaps: object) -> Path:
-    """Gaps at counts of frames the controller received (commands, not seconds); the CMM probes at once, so the run
-    is not spent waiting for simulated probing."""
-    lines = ["[cmm]", "time_scale = 0.0", "[controller.can_faults]", f'gap_log = "{tmp / "gaps.jsonl"}"']
+    """Gaps at counts of frames the controller received (commands, not seconds); the servo and the CMM work at once
+    (tests/cli/sim_speed.py), so the run is not spent waiting for simulated motion and probing."""
+    lines = ["[controller.can_faults]", f'gap_log = "{tmp / "gaps.jsonl"}"']
     lines += [f"{key} = {json.dumps(value)}" for key, value in gaps.items()]
     path = tmp / "sim.toml"
-    path.write_text("\n".join(lines) + "\n")
+    path.write_text(INSTANT_SIM + "\n".join(lines) + "\n")
     return path
 
 
@@ -61,11 +62,11 @@ def _journal(folder: Path, sql: str) -> list[tuple]:
 
 
 @pytest.mark.timeout(900)
-def test_short_gaps_are_ridden_through(tmp_path):
+def test_short_gaps_are_ridden_through(tmp_path, instant_plan):
     out = tmp_path / "run"
     config = _config(tmp_path, gap_at_frames=[40, 250, 500, 800, 1100, 1400], gap_min_s=0.2, gap_max_s=0.6,
                      seed=5)
-    done = _run(["--sim", "--sim-config", str(config), "--out", str(out)], tmp_path)
+    done = _run(["--sim", "--sim-config", str(config), "--plan", str(instant_plan), "--out", str(out)], tmp_path)
     assert done.returncode == 0, done.stdout + done.stderr
     gaps, received = _gap_log(tmp_path)
     assert len(gaps) == 6 and all(0.2 <= g["length_s"] <= 0.6 for g in gaps)
@@ -83,10 +84,10 @@ def test_short_gaps_are_ridden_through(tmp_path):
 
 
 @pytest.mark.timeout(900)
-def test_a_long_gap_ends_the_run_and_the_printed_command_resumes_it(tmp_path):
+def test_a_long_gap_ends_the_run_and_the_printed_command_resumes_it(tmp_path, instant_plan):
     out = tmp_path / "run folder with spaces"
     config = _config(tmp_path, gap_at_frames=[300], gap_min_s=1.6, gap_max_s=1.8, max_gaps=1)
-    stopped = _run(["--sim", "--sim-config", str(config), "--out", str(out)], tmp_path)
+    stopped = _run(["--sim", "--sim-config", str(config), "--plan", str(instant_plan), "--out", str(out)], tmp_path)
     assert stopped.returncode == 3, stopped.stdout + stopped.stderr
     assert "controller link lost" in stopped.stderr and "grace period" in stopped.stderr
     gaps, received = _gap_log(tmp_path)

@@ -178,7 +178,7 @@ def _answer_questions(browser, operator: str, checks: dict) -> str:
 
 
 @pytest.mark.timeout(900)
-def test_a_whole_run_driven_from_the_browser_alone(tmp_path):
+def test_a_whole_run_driven_from_the_browser_alone(tmp_path, instant_plan):
     """Start, prompts, upload approval, report: all on the page (short heartbeat delays on a loaded machine are
     ridden through by the link guard, so the run completes in one go)."""
     out = tmp_path / "run"
@@ -189,7 +189,8 @@ def test_a_whole_run_driven_from_the_browser_alone(tmp_path):
             port = free_port()
             url = f"http://127.0.0.1:{port}/"
             (tmp_path / "sim.toml").write_text(INSTANT_SIM + SCALE_FAULT)  # the page drives it; its pace is not tested
-            proc, log = _start(tmp_path, port, "--sim", "--sim-config", str(tmp_path / "sim.toml"), "--out", str(out))
+            proc, log = _start(tmp_path, port, "--sim", "--sim-config", str(tmp_path / "sim.toml"), "--plan",
+                               str(instant_plan), "--out", str(out))
             browser.get(url)
             outcome = _answer_questions(browser, "B. Rowser", checks)
             assert "complete" in outcome, outcome

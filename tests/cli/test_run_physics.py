@@ -35,20 +35,22 @@ c_mm_per_kn = 0.006
 """
 
 
-def _start(tmp: Path, name: str, *args: str, stdin: str | None = None) -> subprocess.Popen[str]:
+def _start(tmp: Path, name: str, plan: Path, *args: str) -> subprocess.Popen[str]:
     env = {**os.environ, "HILCAL_RECORDS": str(tmp / f"{name}.sqlite"), "COLUMNS": "200"}
     return subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", "--sim", "--operator", "T",
-                             "--sim-config", str(tmp / "sim.toml"), "--out", str(tmp / name), *args],
+                             "--sim-config", str(tmp / "sim.toml"), "--plan", str(plan), "--out", str(tmp / name),
+                             *args],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env=env)
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[int, str, Path]]:
+def runs(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path) -> dict[str, tuple[int, str, Path]]:
     """The same rig seed twice at once: physics on (answered at the terminal) and physics off (unattended)."""
     tmp = tmp_path_factory.mktemp("physics")
     (tmp / "sim.toml").write_text(INSTANT_SIM + RIG)
-    procs = {"on": _start(tmp, "on"), "off": _start(tmp, "off", "--yes", "--physics", "off")}
+    procs = {"on": _start(tmp, "on", instant_plan), "off": _start(tmp, "off", instant_plan, "--yes", "--physics",
+                                                                   "off")}
     out = {}
     for name, proc in procs.items():
         stdout, _ = proc.communicate("y\ny\ny\n" if name == "on" else None, timeout=280)

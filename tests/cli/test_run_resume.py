@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import sqlite3
 import subprocess
@@ -21,19 +22,19 @@ import pytest
 
 from hilcal.protocols.compensation import block_words, zero_block
 from hilcal.robot import default_robot
+from tests.cli.sim_speed import INSTANT_SIM
 
-SIM_CONFIG = """
+SIM_CONFIG = INSTANT_SIM + """
 [controller.modbus_faults]
 response_delay_s = 0.03
-[cmm]
-time_scale = 0.0
 [rig.effects.sensor_scale]
 enabled = true
 gain_error_ppm = [400.0, 0.0, 0.0, -300.0, 0.0, 0.0]
 """
-"""Modbus answers slowly enough for kills to land inside the upload; the CMM probes at once, so a pose takes about
-0.1 s of engine, driver and protocol work (the kill points are in measurements, not in seconds)."""
-POSE_S = 0.1
+"""Modbus answers slowly enough for kills to land inside the upload; the servo and the CMM work at once and the plan
+waits no settle time, so a pose takes about 0.05 s of engine, driver and protocol work (the kill points are in
+measurements, not in seconds)."""
+POSE_S = 0.05
 """About one pose's time at these settings: a kill lands up to 1.5 poses after its measurement count is reached."""
 
 
@@ -63,16 +64,18 @@ def _live_set(state_file: Path) -> tuple[np.ndarray, str | None] | None:
 
 
 def _start(out: Path, tmp: Path, run_id: str | None, stdout: int = subprocess.DEVNULL) -> subprocess.Popen[bytes]:
-    args = ["--resume", run_id] if run_id else ["--sim", "--sim-config", str(tmp / "sim.toml")]
+    args = ["--resume", run_id] if run_id else ["--sim", "--sim-config", str(tmp / "sim.toml"), "--plan",
+                                                str(tmp / "plan.json")]
     env = {**os.environ, "HILCAL_RECORDS": str(tmp / "records.sqlite")}
     return subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", "--yes", "--out", str(out), *args],
                             stdout=stdout, stderr=subprocess.DEVNULL, env=env)
 
 
 @pytest.mark.timeout(900)
-def test_sigkill_at_seeded_points_then_resume(tmp_path):
+def test_sigkill_at_seeded_points_then_resume(tmp_path, instant_plan):
     rng = np.random.default_rng(20261121)
     (tmp_path / "sim.toml").write_text(SIM_CONFIG)
+    shutil.copy(instant_plan, tmp_path / "plan.json")
     out = tmp_path / "run"
     journal = out / "journal.sqlite"
     pre = 35 + 24  # 32 measure poses, one measured 4 times, and 24 verify poses; then 24 again after the upload
