@@ -164,6 +164,10 @@ class EffectContext:
             values[f.name] = None if value is None else value[mask]
         return EffectContext(**values)
 
+    def unknown_history(self) -> np.ndarray:
+        """[N, 6] legs whose direction of approach is unknown (no recorded move since their session started)."""
+        return self.direction == 0
+
     def per_leg(self, values: np.ndarray) -> np.ndarray:
         """Broadcast a per-row quantity [N] to [N, 6]."""
         return np.broadcast_to(np.asarray(values, dtype=float)[:, None], self.legs_mm.shape)

@@ -95,18 +95,21 @@ def _holm(p: np.ndarray) -> np.ndarray:
 
 
 def session_shift(ctx: EffectContext, measure: np.ndarray, leg_res: np.ndarray, rec: Recording,
-                  predict: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> SessionShift | None:
+                  predict: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                  unknown: np.ndarray | None = None) -> SessionShift | None:
     """Per-leg mean residual of verify rows in sessions without measure rows (t test per leg, Holm over legs).
 
     Such a step is itself a finding: the machine was re-homed or a transducer's zero moved between the
     sessions. It is estimated on the verify rows themselves, so the corrected verify error is not held out.
-    `predict(rows, leg_offsets_mm)` gives the model's poses for those rows with extra leg offsets.
+    `predict(rows, leg_offsets_mm)` gives the model's poses for those rows with extra leg offsets. Rows in
+    `unknown` (a term of the model cannot apply there: its history is unknown) do not enter the estimate.
     """
     later = ~measure & ~np.isin(ctx.session, np.unique(ctx.session[measure]))
-    n = int(later.sum())
+    known = later if unknown is None else later & ~unknown
+    n = int(known.sum())
     if n < 3:
         return None
-    res = leg_res[later]
+    res = leg_res[known]
     mean = res.mean(axis=0)
     se = res.std(axis=0, ddof=1) / np.sqrt(n)
     p = _holm(2 * stdtr(n - 1, -np.abs(mean) / np.maximum(se, 1e-300)))

@@ -52,12 +52,17 @@ class Problem:
     """Fits that stopped before converging (named in the answer)."""
 
     @classmethod
-    def of(cls, rec: Recording, robot: Robot) -> Problem:
+    def of(cls, rec: Recording, robot: Robot, ctx_all: EffectContext | None = None) -> Problem:
+        """`ctx_all`: the rows' context when they are a subset of a longer recording (computed on the whole
+        recording, so leaving rows out changes no other row's history, session or time); else from `rec`."""
         measure = rec.phase == "measure"
-        ctx_all = EffectContext.from_recording(rec, robot)
+        if ctx_all is None:
+            ctx_all = EffectContext.from_recording(rec, robot)
+        if ctx_all.n != rec.n:
+            raise ValueError(f"the context has {ctx_all.n} rows, the recording {rec.n}")
         mea = rec.select("measure")
         labels = np.arange(mea.n)
-        for group in find_repeats(mea):
+        for group in find_repeats(mea, ctx_all.session[measure]):
             labels[group] = group[0]
         return cls(robot, rec, measure, ctx_all, ctx_all.rows(measure), mea, rec.select("verify"), labels)
 
@@ -186,6 +191,39 @@ def verify_accuracy(p: Problem, fit: IdentificationResult, groups: list[TermGrou
     if not rows.any():
         return None
     return AccuracySummary.of(p.rec.meas[rows], predict(p, fit, groups, rows))
+
+
+def later_verify(p: Problem) -> np.ndarray:
+    """Verify rows in sessions without measure rows (where a re-homing between sessions shows)."""
+    return ~p.measure & ~np.isin(p.ctx_all.session, np.unique(p.ctx_all.session[p.measure]))
+
+
+def unknown_terms(p: Problem, groups: list[TermGroup]) -> np.ndarray:
+    """[N] rows (all phases) where a term of these groups cannot apply: its history is unknown there."""
+    out = np.zeros(p.rec.n, dtype=bool)
+    for g in groups:
+        if g.history:
+            out |= g.unknown_rows(p.ctx_all).any(axis=1)
+    return out
+
+
+def judged_verify_mm(p: Problem, fit: IdentificationResult, groups: list[TermGroup],
+                     shift_legs: tuple[int, ...] = ()) -> float | None:
+    """The held-out verify RMS position error (mm) of a model with the session shift of `shift_legs` (1-based legs
+    the diagnosis reports a shift on) removed: each leg's mean residual over the later verify session (rows whose
+    terms are known), estimated for this model as `hilcal.discovery.findings.session_shift` does. Without a reported
+    shift: the plain figure."""
+    verify = ~p.measure
+    if not verify.any():
+        return None
+    offsets: np.ndarray | float = 0.0
+    later = later_verify(p)
+    known = later & ~unknown_terms(p, groups)
+    if shift_legs and known.sum() >= 3:
+        mean = leg_residuals(p, fit, groups)[known].mean(axis=0)
+        on = np.isin(np.arange(1, 7), shift_legs)
+        offsets = np.where(later[verify][:, None] & on[None, :], mean[None, :], 0.0)
+    return AccuracySummary.of(p.rec.meas[verify], predict(p, fit, groups, verify, offsets)).position_mm.rms
 
 
 def leg_residuals(p: Problem, fit: IdentificationResult, groups: list[TermGroup]) -> np.ndarray:

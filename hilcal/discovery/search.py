@@ -27,6 +27,7 @@ from threadpoolctl import threadpool_limits
 
 from hilcal.discovery import explain
 from hilcal.discovery.aliases import Alias, alias_why, resolve, separation
+from hilcal.discovery.context import EffectContext
 from hilcal.discovery.corrections import compensation_set
 from hilcal.discovery.findings import (
     END_STOP_TOLERANCE_MM,
@@ -43,10 +44,12 @@ from hilcal.discovery.fitting import (
     fit_model,
     group_columns,
     groups_columns,
+    judged_verify_mm,
     leg_residuals,
     model_state,
     predict,
     shape_scales,
+    unknown_terms,
     verify_accuracy,
 )
 from hilcal.discovery.generic_terms import generic_groups
@@ -54,7 +57,16 @@ from hilcal.discovery.naming import named_effects
 from hilcal.discovery.noise import noise_yardstick
 from hilcal.discovery.physics import library_groups
 from hilcal.discovery.regression import cluster_robust_covariance
-from hilcal.discovery.result import CandidateResult, Diagnosis, Step
+from hilcal.discovery.result import CandidateResult, Diagnosis, SessionShift, Step
+from hilcal.discovery.screen import (
+    UnknownRows,
+    known_median,
+    outlier_sentence,
+    outliers,
+    unknown_json,
+    unknown_rows,
+    unknown_sentence,
+)
 from hilcal.discovery.selection import GroupTest, assess, choose, similar
 from hilcal.discovery.shapes import shapes_for
 from hilcal.discovery.term_groups import GENERIC, LIBRARY, TermGroup
@@ -62,7 +74,7 @@ from hilcal.error_models import pose_difference
 from hilcal.identification import IdentificationResult, residual_function
 from hilcal.recording import Recording
 from hilcal.robot import Robot
-from hilcal.wiring import check_wiring
+from hilcal.wiring import LegWiring, check_wiring
 
 log = structlog.get_logger(__name__)
 
@@ -71,12 +83,6 @@ MAX_STEPS = 8
 DEFAULT_ALPHA = 0.02
 """Family-wise false-alarm rate of a diagnosis on a recording without missing physics (library and generic
 families share it); step k of the search uses alpha / k."""
-OUTLIER_FACTOR = 4.0
-"""A measure row is a measurement outlier when the final model's left-out residual there is beyond 4 times the
-median (for Gaussian noise in six pose components the median is about 2.4 sigma, so this is about 9 sigma)."""
-MAX_OUTLIER_SHARE = 0.05
-MIN_OUTLIER_ALLOWANCE = 2
-"""At most 5 % of the measure rows (and never fewer than 2) are left out as outliers; more is structure or noise."""
 WIRING = "leg_wiring"
 """The effect name of a set-up fault in the leg readings' order or direction (hilcal.wiring)."""
 ALIAS_GAIN = 0.9
@@ -125,6 +131,8 @@ class _Selection:
     chosen_tests: dict[str, GroupTest]
     evidence: dict[str, dict[str, float]]
     fit: IdentificationResult
+    models: list[tuple[list[TermGroup], IdentificationResult]] = dataclasses.field(default_factory=list)
+    """The model after every step (groups and fit), for the held-out verdict of each step."""
 
 
 def _drop_test(p: Problem, chosen: list[TermGroup], group: TermGroup, alpha: float, n_boot: int,
@@ -162,6 +170,7 @@ def _swap(p: Problem, sel: _Selection, library: list[TermGroup], alpha: float, n
                     continue
                 fit = fit_model(p, trial, sel.fit)
                 sel.chosen, sel.fit, best_cv, improved = trial, fit, cv, True
+                sel.models.append((list(trial), fit))
                 sel.chosen_tests[new.key] = test
                 sel.steps.append(Step(len(sel.steps) + 1, new.key, new.effect, new.kind, new.title, test.rank,
                                       test.f_statistic, test.p_value, test.p_wild, test.p_gauss,
@@ -217,6 +226,7 @@ def _select(p: Problem, candidates: list[TermGroup], alpha: float, n_boot: int, 
         remaining = [g for g in remaining if g.key != best.group.key and g.key not in dropped
                      and not (g.kind == GENERIC and (g.leg, g.variable) in done)]
         sel.fit = fit_model(p, sel.chosen, sel.fit)
+        sel.models.append((list(sel.chosen), sel.fit))
         sel.steps.append(Step(index, best.group.key, best.group.effect, best.group.kind, best.group.title, best.rank,
                               best.f_statistic, best.p_value, best.p_wild, best.p_gauss, cv_now, best.cv_rms_mm,
                               verify_accuracy(p, sel.fit, sel.chosen), tuple(removed)))
@@ -266,49 +276,84 @@ def final_without(final: IdentificationResult, chosen: list[TermGroup], group: T
 def diagnose(
     rec: Recording, robot: Robot, *, alpha: float = DEFAULT_ALPHA, n_boot: int = 999, seed: int = 0,
     cmm_sigma_mm: float | None = None, max_steps: int = MAX_STEPS, generic: bool = True,
-    pose_sigma: tuple[float, float] | None = None,
+    pose_sigma: tuple[float, float] | None = None, include_unconfirmed: bool = False,
 ) -> Diagnosis:
     """Locate, name and model the physics that the rigid geometric model leaves out of a recording.
 
     The noise yardstick may be stated: ``cmm_sigma_mm`` (sphere centres, through the robot file's sphere layout) or
     ``pose_sigma`` (mm per position coordinate, degrees per orientation axis: a tracker's 6-DoF probe).
+    ``include_unconfirmed`` keeps the groups whose step made the held-out verify figure worse in the exported
+    compensation set (by default they are left out of it, and its geometry is refitted without them).
 
     BLAS runs on one thread here: the matrices are small (6 N rows, tens of columns), so threads only add
     synchronisation, and on a busy PC their busy-waiting made the search several times slower
     (benchmarks/bench_diagnose.py)."""
     with threadpool_limits(limits=1, user_api="blas"):
         return _diagnose(rec, robot, alpha=alpha, n_boot=n_boot, seed=seed, cmm_sigma_mm=cmm_sigma_mm,
-                         max_steps=max_steps, generic=generic, pose_sigma=pose_sigma)
+                         max_steps=max_steps, generic=generic, pose_sigma=pose_sigma,
+                         include_unconfirmed=include_unconfirmed)
+
+
+def _titles(groups: tuple[TermGroup, ...]) -> dict[str, str]:
+    return {g.key: g.effect if g.kind == LIBRARY else g.title for g in groups}
+
+
+def _with_sentence(diag: Diagnosis, said: str, first: bool) -> Diagnosis:
+    """The diagnosis with one more summary sentence: first, or after the others (before the evidence)."""
+    if first:
+        return dataclasses.replace(diag, summary=(said, *diag.summary), explanation=f"{said} {diag.explanation}")
+    text = diag.explanation
+    if diag.evidence and text.endswith(diag.evidence):
+        text = f"{text[:-len(diag.evidence)]}{said} {diag.evidence}"
+    else:
+        text = f"{text} {said}"
+    return dataclasses.replace(diag, summary=(*diag.summary, said), explanation=text)
+
+
+def _screen(diag: Diagnosis) -> tuple[UnknownRows, float]:
+    """The measure rows whose terms are unknown, and the median left-out residual of the others."""
+    found = unknown_rows(diag.groups, diag.context.rows(diag.measure))
+    median = float("nan") if diag.left_out_mm is None else known_median(diag.left_out_mm, found.rows)
+    return found, median
 
 
 def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: int, cmm_sigma_mm: float | None,
-              max_steps: int, generic: bool, pose_sigma: tuple[float, float] | None) -> Diagnosis:
+              max_steps: int, generic: bool, pose_sigma: tuple[float, float] | None,
+              include_unconfirmed: bool) -> Diagnosis:
     wiring = check_wiring(rec.legs_mm, rec.meas, robot)
     if wiring.problem:
         log.info("leg_wiring", problem=wiring.sentence())
         if not wiring.dead:
             rec = dataclasses.replace(rec, legs_mm=wiring.corrected(rec.legs_mm))
     kwargs = {"alpha": alpha, "n_boot": n_boot, "seed": seed, "cmm_sigma_mm": cmm_sigma_mm, "max_steps": max_steps,
-              "generic": generic, "pose_sigma": pose_sigma}
-    diag = _search(rec, robot, **kwargs)
-    outliers = _outliers(diag.left_out_mm)
-    if outliers.size:
-        rows = np.flatnonzero(rec.phase == "measure")[outliers]
-        median = float(np.median(diag.left_out_mm))
-        excluded = tuple({"seq": float(rec.seq[r]), "left_out_mm": float(diag.left_out_mm[k]),
-                          "times_median": float(diag.left_out_mm[k] / median)} for r, k in zip(rows, outliers,
-                                                                                                 strict=True))
-        log.info("outliers_excluded", seq=[e["seq"] for e in excluded])
-        diag = _search(rec.rows(~np.isin(np.arange(rec.n), rows)), robot, stops_from=rec, **kwargs)
-        at_stop = {r: f", leg {s.leg} at its {s.extreme}" for r in rows for s in diag.end_stops
+              "generic": generic, "pose_sigma": pose_sigma, "include_unconfirmed": include_unconfirmed}
+    ctx = EffectContext.from_recording(rec, robot)
+    diag = _search(rec, robot, ctx, **kwargs)
+    found, median = _screen(diag)
+    bad = outliers(diag.left_out_mm, found.rows)
+    if not bad.size and not found.rows.size:
+        return _wired(diag, wiring)
+    measure_rows = np.flatnonzero(rec.phase == "measure")
+    left_out = np.zeros(0) if diag.left_out_mm is None else diag.left_out_mm
+    rows = measure_rows[bad]
+    excluded = tuple({"seq": float(rec.seq[r]), "left_out_mm": float(left_out[k]),
+                      "times_median": float(left_out[k] / median)} for r, k in zip(rows, bad, strict=True))
+    unknown = unknown_json(found, rec.seq[measure_rows], diag.left_out_mm, median)
+    said_unknown = unknown_sentence(found, unknown, diag.context.rows(diag.measure), _titles(diag.groups))
+    log.info("rows_left_out", outliers=[e["seq"] for e in excluded], unknown=[e["seq"] for e in unknown])
+    keep = ~np.isin(np.arange(rec.n), np.concatenate([rows, measure_rows[found.rows]]))
+    diag = _search(rec.rows(keep), robot, ctx.rows(keep), stops_from=rec, **kwargs)
+    if rows.size:
+        at_stop = {int(r): f", leg {s.leg} at its {s.extreme}" for r in rows for s in diag.end_stops
                    if abs(rec.legs_mm[r, s.leg - 1] - s.reading_mm) <= END_STOP_TOLERANCE_MM}
-        listed = ", ".join(f"seq {e['seq']:.0f} ({e['left_out_mm']:.4f} mm, {e['times_median']:.0f}x"
-                           f"{at_stop.get(r, '')})" for r, e in zip(rows, excluded, strict=True))
-        said = (f"Measurement outlier(s) left out of the fit: {listed}: the left-out residual of the model is more "
-                f"than {OUTLIER_FACTOR:g} times the median of the measure rows ({median:.4f} mm); a bad measurement "
-                "(a broken beam, a probing error, a knock) or a collision: re-measure these poses.")
-        diag = dataclasses.replace(diag, excluded=excluded, summary=(said, *diag.summary),
-                                   explanation=f"{said} {diag.explanation}")
+        diag = _with_sentence(diag, outlier_sentence(rows, excluded, median, at_stop), True)
+    if said_unknown:
+        diag = _with_sentence(diag, said_unknown, False)
+    return _wired(dataclasses.replace(diag, excluded=excluded, unknown_rows=unknown), wiring)
+
+
+def _wired(diag: Diagnosis, wiring: LegWiring) -> Diagnosis:
+    """The diagnosis with the leg-wiring check: a set-up fault sentence first when the readings were re-ordered."""
     if not wiring.problem:
         return dataclasses.replace(diag, wiring=wiring)
     said = wiring.sentence([f"leg{i}_mm" for i in range(1, 7)])
@@ -325,35 +370,39 @@ def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: 
                                compensation=compensation)
 
 
-def _outliers(left_out_mm: np.ndarray | None) -> np.ndarray:
-    """Measure rows (indices) whose left-out residual is beyond OUTLIER_FACTOR times the median; none when more than
-    the allowance would go (then it is structure or noise, not a few bad measurements)."""
-    if left_out_mm is None or left_out_mm.size < 10:
-        return np.zeros(0, dtype=int)
-    finite = np.isfinite(left_out_mm)
-    median = float(np.median(left_out_mm[finite]))
-    out = np.flatnonzero(finite & (left_out_mm > OUTLIER_FACTOR * median))
-    allowed = max(MIN_OUTLIER_ALLOWANCE, int(MAX_OUTLIER_SHARE * left_out_mm.size))
-    return out if out.size <= allowed else np.zeros(0, dtype=int)
+def _judge(p: Problem, geo: IdentificationResult, sel: _Selection, shift: SessionShift | None) -> list[Step]:
+    """Every step with its held-out verify figure before and after, judged with any reported session shift
+    removed (the verify rows never choose; they only confirm or not)."""
+    legs = () if shift is None else shift.legs
+    if legs:
+        figures = [judged_verify_mm(p, geo, [], legs)] + [judged_verify_mm(p, fit, groups, legs)
+                                                           for groups, fit in sel.models]
+    else:
+        before = verify_accuracy(p, geo, [])
+        figures = [None if before is None else before.position_mm.rms] + [
+            None if s.verify is None else s.verify.position_mm.rms for s in sel.steps]
+    return [dataclasses.replace(s, judged_before_mm=figures[k], judged_mm=figures[k + 1])
+            for k, s in enumerate(sel.steps)]
 
 
-def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: int, cmm_sigma_mm: float | None,
-            max_steps: int, generic: bool, pose_sigma: tuple[float, float] | None,
-            stops_from: Recording | None = None) -> Diagnosis:
-    """The diagnosis of `rec` as given (end stops are looked for in `stops_from`, the rows before any exclusion)."""
-    p = Problem.of(rec, robot)
+def _search(rec: Recording, robot: Robot, ctx: EffectContext, *, alpha: float, n_boot: int, seed: int,
+            cmm_sigma_mm: float | None, max_steps: int, generic: bool, pose_sigma: tuple[float, float] | None,
+            include_unconfirmed: bool, stops_from: Recording | None = None) -> Diagnosis:
+    """The diagnosis of `rec` as given, with `ctx` its rows' context (computed on the whole recording when `rec` is a
+    subset of it); end stops are looked for in `stops_from`, the rows before any exclusion."""
+    p = Problem.of(rec, robot, ctx)
     library, untestable = library_groups(p.ctx, robot)
     candidates = library + (generic_groups(p.ctx) if generic else [])
     geo = fit_model(p, [], label="geometry only")
     cv_geometry = model_state(p, geo, [])[0].cv_mm
 
     sel = _select(p, candidates, alpha, n_boot, seed, max_steps, geo)
-    chosen, steps, rejected, alternatives = sel.chosen, sel.steps, sel.rejected, sel.alternatives
+    chosen, rejected, alternatives = sel.chosen, sel.rejected, sel.alternatives
     cv_final = _cv_mm(p, chosen, sel.fit) if chosen else cv_geometry
 
     leg_res = leg_residuals(p, geo, [])
-    final = final_fit(p, chosen, sel.fit if chosen else geo, shape_scales(leg_res[p.measure]),
-                      max(sel.fit.rms_residual, 1e-6))
+    scales, noise_mm = shape_scales(leg_res[p.measure]), max(sel.fit.rms_residual, 1e-6)
+    final = final_fit(p, chosen, sel.fit if chosen else geo, scales, noise_mm)
     r_final, J_final = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm,
                                          p.phi_of(chosen))(final.x)
     cov = cluster_robust_covariance(J_final, r_final, p.mea.n)
@@ -362,16 +411,25 @@ def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: in
     after = verify_accuracy(p, final, chosen)
 
     residuals_all = pose_difference(rec.meas, predict(p, geo, [], np.ones(rec.n, dtype=bool)), p.length_mm)
-    noise = noise_yardstick(rec, robot, residuals_all, p.length_mm, cmm_sigma_mm, pose_sigma)
+    noise = noise_yardstick(rec, robot, residuals_all, p.length_mm, cmm_sigma_mm, pose_sigma, p.ctx_all.session)
     r_geo, J_geo = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm)(geo.x)
     ratio = None
     if noise.chosen is not None:
         ratio = noise_comparison(p.robot, p.mea.meas, noise.chosen.covariance[p.measure], (r_geo, J_geo),
                                  (r_final, J_final), p.length_mm)
     shift = session_shift(p.ctx_all, p.measure, leg_residuals(p, final, chosen), rec,
-                          lambda rows, offsets: predict(p, final, chosen, rows, offsets))
+                          lambda rows, offsets: predict(p, final, chosen, rows, offsets), unknown_terms(p, chosen))
+    steps = _judge(p, geo, sel, shift)
+    chosen_keys = {g.key for g in chosen}
+    unconfirmed = tuple(dict.fromkeys(s.key for s in steps if s.confirmed is False and s.key in chosen_keys))
+    loadable = chosen if include_unconfirmed else [g for g in chosen if g.key not in unconfirmed]
+    model_terms = compensation_set(p.ctx_all, final, chosen)
+    loadable_fit, compensation = final, model_terms
+    if len(loadable) < len(chosen):
+        loadable_fit = final_fit(p, loadable, fit_model(p, loadable, sel.fit) if loadable else geo, scales, noise_mm)
+        compensation = compensation_set(p.ctx_all, loadable_fit, loadable)
+    compensation_after = after if loadable_fit is final else verify_accuracy(p, loadable_fit, loadable)
     shapes = shapes_for(robot, p.ctx, final, cov, J_final, chosen, steps, before, alternatives, seed)
-    compensation = compensation_set(p.ctx_all, final, chosen)
     left_out = model_state(p, final, chosen)[0].left_out_norms_mm()
     offsets = zero_offsets(robot, final.geometry(robot))
     zero_said = zero_sentence(robot, offsets)
@@ -389,23 +447,23 @@ def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: in
     named = named_effects(chosen, params, std, p.ctx)
     findings = locate(p.ctx_all, rec, leg_res)
     stops = end_stops(rec if stops_from is None else stops_from, robot)
+    verdict = explain.Verdict(unconfirmed, include_unconfirmed, compensation_after, bool(shift and shift.legs))
     answer = explain.Answer(
         effect, effects, chosen, steps, params, std, noise, ratio, shapes, shift, rejected, untestable, aliases,
-        before, after, findings, named, stops, tuple(p.not_converged), compensation,
+        before, after, findings, named, stops, tuple(p.not_converged), model_terms, verdict,
     )
-    log.info("diagnosed", effects=effects, steps=len(steps), not_converged=p.not_converged)
+    log.info("diagnosed", effects=effects, steps=len(steps), not_converged=p.not_converged, unconfirmed=unconfirmed)
     return Diagnosis(
         effect=effect, effects=tuple(effects), explanation=explain.compose(answer), parameters=params, std_errors=std,
         before=before, after=after, steps=tuple(steps),
-        candidates=_candidate_results(sel.first_tests, library, untestable, {g.key for g in chosen}),
+        candidates=_candidate_results(sel.first_tests, library, untestable, chosen_keys),
         rejected=tuple(rejected.items()), ambiguous_with=tuple(a.other for a in aliases),
         cv_rms_geometry_mm=cv_geometry, cv_rms_final_mm=cv_final, noise=noise, noise_ratio=ratio,
         shapes=tuple(shapes), session_shift=shift, findings=findings, groups=tuple(chosen), geometry_fit=geo,
         final_fit=final, leg_residuals_mm=leg_res, leg_residuals_final_mm=leg_residuals(p, final, chosen),
         context=p.ctx_all, measure=p.measure, named=named, aliases=aliases, end_stops=stops,
         not_converged=tuple(p.not_converged), compensation=compensation,
-        summary=(*([zero_said] if zero_said else []),
-                 *explain.summary_sentences(named, shapes, aliases, shift, stops, tuple(p.not_converged), effects,
-                                            ratio, noise, compensation)),
+        summary=(*([zero_said] if zero_said else []), *explain.summary_sentences(answer)),
         evidence=explain.evidence(answer), left_out_mm=left_out, zero_offsets_mm=offsets,
+        unconfirmed=unconfirmed, compensation_after=compensation_after,
     )

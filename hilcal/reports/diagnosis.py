@@ -19,7 +19,7 @@ import numpy as np
 
 from hilcal.discovery.corrections import CompensationSet, Term
 from hilcal.discovery.explain import title_of
-from hilcal.discovery.result import Diagnosis, Shape
+from hilcal.discovery.result import Diagnosis, Shape, Step
 from hilcal.reports import diagnosis_plots as plots
 from hilcal.robot import POSE_AXES
 
@@ -88,6 +88,14 @@ def _fmt(v: float | None, spec: str = ".3g") -> str:
     return "" if v is None or not np.isfinite(v) else format(v, spec)
 
 
+def _verdict(step: Step) -> str:
+    """'confirmed' or 'NOT confirmed' with the held-out figures (session shift removed when one is reported)."""
+    if step.confirmed is None or step.judged_mm is None or step.judged_before_mm is None:
+        return ""
+    word = "confirmed" if step.confirmed else "NOT confirmed"
+    return f"{word} ({step.judged_before_mm:.4f} -> {step.judged_mm:.4f} mm)"
+
+
 def write_report(diag: Diagnosis, out_dir: Path) -> Path:
     """Write every file of the report into out_dir; return the page path."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -113,10 +121,11 @@ def write_report(diag: Diagnosis, out_dir: Path) -> Path:
                           f"{extra}{_img(out_dir / f'shape_{slug}.png')}")
     steps = _table(
         ["step", "group", "kind", "params", "F", "p (family-wise)", "CV before µm", "CV after µm", "verify RMS mm",
-         "removed"],
+         "held-out verdict", "removed"],
         [[str(s.index), s.key, s.kind, str(s.n_params), _fmt(s.f_statistic, ".1f"), _fmt(s.p_value),
           _fmt(s.cv_before_mm * 1000, ".2f"), _fmt(s.cv_rms_mm * 1000, ".2f"),
-          "" if s.verify is None else f"{s.verify.position_mm.rms:.4f}", ", ".join(s.removed)] for s in diag.steps],
+          "" if s.verify is None else f"{s.verify.position_mm.rms:.4f}", _verdict(s), ", ".join(s.removed)]
+         for s in diag.steps],
     )
     candidates = _table(
         ["candidate", "testable", "F", "p (family-wise)", "CV µm", "chosen", "note"],

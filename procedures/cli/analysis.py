@@ -145,6 +145,10 @@ def diagnose(
     )] = None,
     alpha: Annotated[float, typer.Option(help="false-alarm rate on a recording without missing physics")] = 0.02,
     seed: Annotated[int, typer.Option(help="seed of the bootstrap")] = 0,
+    include_unconfirmed: Annotated[bool, typer.Option(
+        "--include-unconfirmed", help="keep the corrections of steps that made the held-out verify poses worse in "
+        "the compensation set (left out by default)",
+    )] = False,
 ) -> None:
     """Find the physics the geometric model leaves out: locate, name, model it, show the fit improve."""
     from hilcal.discovery.search import diagnose as run_diagnosis
@@ -164,7 +168,8 @@ def diagnose(
     rb = robot_or_fail(robot)
     try:
         rec = read_recording(recording, rb)
-        diag = run_diagnosis(rec, rb, alpha=alpha, seed=seed, cmm_sigma_mm=cmm_sigma_mm, pose_sigma=pose_sigma)
+        diag = run_diagnosis(rec, rb, alpha=alpha, seed=seed, cmm_sigma_mm=cmm_sigma_mm, pose_sigma=pose_sigma,
+                             include_unconfirmed=include_unconfirmed)
     except (RecordingError, IdentificationError, KinematicsError) as e:
         fail(str(e))
     page = None
@@ -189,11 +194,12 @@ def diagnose(
     out.print(diag.evidence, highlight=False, markup=False)
     if diag.steps:
         table = Table(title="selection steps")
-        for col in ("step", "group", "F", "p", "CV µm", "verify RMS mm", "removed"):
-            table.add_column(col, justify="left" if col in ("group", "removed") else "right")
+        for col in ("step", "group", "F", "p", "CV µm", "verify RMS mm", "held out", "removed"):
+            table.add_column(col, justify="left" if col in ("group", "held out", "removed") else "right")
         for s in diag.steps:
+            held = {None: "", True: "confirmed", False: "NOT confirmed"}[s.confirmed]
             table.add_row(str(s.index), s.key, f"{s.f_statistic:.1f}", f"{s.p_value:.3g}", f"{s.cv_rms_mm * 1000:.2f}",
-                          "" if s.verify is None else f"{s.verify.position_mm.rms:.4f}", ", ".join(s.removed))
+                          "" if s.verify is None else f"{s.verify.position_mm.rms:.4f}", held, ", ".join(s.removed))
         out.print(table)
     out.print(accuracy_table("verify poses (held out)", [("geometry only", diag.before), ("final model", diag.after)]))
     if diag.findings:
