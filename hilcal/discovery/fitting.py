@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+from collections.abc import Callable
 
 import numpy as np
 import structlog
-from scipy.optimize import least_squares
+from scipy.optimize import least_squares, lsq_linear
 
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.noise import find_repeats
@@ -161,11 +162,21 @@ def final_fit(p: Problem, groups: list[TermGroup], start: IdentificationResult, 
         P[:, generic] = (weight[None, :, None] * phi[:, :, generic[N_GEO:]]).reshape(-1, int(generic.sum()))
 
     def residuals(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        r, J = fun(x)
+        try:
+            r, J = fun(x)
+        except KinematicsError:
+            # A trial step so far off that some poses have no forward kinematics: the trust region shrinks on
+            # non-finite residuals (scipy's trf), so it is rejected rather than ending the diagnosis.
+            r, J = np.full(6 * p.mea.n, np.inf), np.zeros((6 * p.mea.n, x.size))
         return np.concatenate([r, P @ x]), np.concatenate([J, P])
 
     span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
-    x0 = np.clip(fit.x, lo + 1e-9 * span, hi - 1e-9 * span)
+    margin_lo, margin_hi = lo + 1e-9 * span, hi - 1e-9 * span
+    x0 = fit.x if inside else _inside_start(residuals, fit.x, margin_lo, margin_hi)
+    x0 = np.clip(x0, margin_lo, margin_hi)
+    if not np.all(np.isfinite(residuals(x0)[0])):
+        p.not_converged.append("final model (bounded, shapes held to the data)")
+        return fit
     sol = least_squares(lambda x: residuals(x)[0], x0, jac=lambda x: residuals(x)[1], bounds=(lo, hi),
                         method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=MAX_EVALUATIONS)
     if sol.status <= 0:
@@ -174,6 +185,20 @@ def final_fit(p: Problem, groups: list[TermGroup], start: IdentificationResult, 
     return dataclasses.replace(fit, x=sol.x, residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))),
                                rms_residual=float(np.sqrt(np.mean(r**2))), converged=bool(sol.status > 0),
                                message=f"final refit: {sol.message}")
+
+
+def _inside_start(residuals: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x: np.ndarray, lo: np.ndarray,
+                  hi: np.ndarray) -> np.ndarray:
+    """A start inside the bounds for a fit whose parameters left them: the bounded linear least-squares step from x.
+
+    A fit outside the possible range usually drifted along a direction the data cannot see (a stroke spline and a
+    scale on the same leg trade against each other); clipping alone would then move the legs by the drifted
+    amount, far from any pose. The linearised step moves the trading parameters together, back inside."""
+    r, J = residuals(x)
+    scale = np.linalg.norm(J, axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    step = lsq_linear(J / scale, -r, bounds=((lo - x) * scale, (hi - x) * scale), method="bvls")
+    return x + step.x / scale
 
 
 def predict(p: Problem, fit: IdentificationResult, groups: list[TermGroup], rows: np.ndarray,
