@@ -23,7 +23,7 @@ from hilcal.discovery.regression import pooled_whitener, whiten
 from hilcal.discovery.selection import ModelState
 from hilcal.discovery.term_groups import GENERIC, TermGroup
 from hilcal.error_models import GEOMETRIC_42, implicit_residuals
-from hilcal.identification import IdentificationResult, identify, residual_function
+from hilcal.identification import IdentificationResult, residual_function
 from hilcal.kinematics import KinematicsError, forward_kinematics
 from hilcal.metrics import AccuracySummary
 from hilcal.recording import Recording
@@ -49,6 +49,10 @@ class Problem:
     ver: Recording
     clusters: np.ndarray
     phi_cache: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    shape_prior: tuple[np.ndarray, float | None] | None = None
+    """(per-leg scale in mm, noise per residual component in mm or None) of the generic shapes' Gaussian prior
+    (`prior_rows`), once the geometry-only fit has set it: every fit with a generic group then holds the shapes to
+    the size the data shows. Without a noise level, each fit takes its start's residual RMS."""
     not_converged: list[str] = dataclasses.field(default_factory=list)
     """Fits that stopped before converging (named in the answer)."""
 
@@ -92,26 +96,111 @@ def _start(groups: list[TermGroup], start: IdentificationResult | None) -> np.nd
     return np.array([values.get(n, 0.0) for n in GEOMETRIC_42.names + names_of(groups)])
 
 
+GN_ITERATIONS = 30
+GN_TOLERANCE = 1e-13
+"""Gauss-Newton stops when a full step would lower the sum of squares by less than this fraction of it."""
+RCOND = 1e-5
+"""Singular values below this fraction of the largest (column-scaled Jacobian) are treated as zero: directions the
+data cannot see get no step (minimum-norm steps), so a fit never drifts along them."""
+
+
+def gauss_newton(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0: np.ndarray,
+                 max_iter: int | None = None) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
+    """Least squares by Gauss-Newton with minimum-norm steps on the column-scaled Jacobian and step halving.
+
+    The diagnosis' models are linear in every effect parameter and nearly linear in the small geometric errors,
+    so from a warm start a few steps reach the minimum; a Levenberg-Marquardt search with a trust region crawled for
+    hundreds of evaluations along directions the poses hardly see (benchmarks/bench_diagnose.py).
+    Returns (x, residuals, evaluations, converged, message)."""
+    max_iter = GN_ITERATIONS if max_iter is None else max_iter
+    x = np.asarray(x0, dtype=float).copy()
+    r, J = fun(x)
+    cost = float(r @ r)
+    evaluations = 1
+    for _ in range(max_iter):
+        c = np.sqrt(np.mean(J**2, axis=0))
+        c = np.where(c > 0, c, 1.0)
+        d = np.linalg.lstsq(J / c, -r, rcond=RCOND)[0] / c
+        predicted = float(np.sum((J @ d) ** 2))
+        if predicted <= GN_TOLERANCE * cost:
+            return x, r, evaluations, True, "Gauss-Newton: the next step gains nothing"
+        t = 1.0
+        while True:
+            try:
+                r_new, J_new = fun(x + t * d)
+                new_cost = float(r_new @ r_new)
+            except KinematicsError:
+                new_cost = np.inf
+            evaluations += 1
+            if new_cost <= cost:
+                break
+            t *= 0.25
+            if t < 1e-6:
+                return x, r, evaluations, True, "Gauss-Newton: no step lowers the sum of squares"
+        x, r, J, cost = x + t * d, r_new, J_new, new_cost
+    return x, r, evaluations, False, f"Gauss-Newton stopped after {max_iter} steps"
+
+
+def prior_rows(p: Problem, groups: list[TermGroup], shape_scale_mm: np.ndarray, noise_mm: float) -> np.ndarray:
+    """Ridge rows [6 N, 42 + q] of the generic shapes' Gaussian prior: each shape's correction at every recorded row
+    and leg, weighted by noise / scale (a prior of `shape_scale_mm` per leg); no rows without a generic group."""
+    size = N_GEO + sum(g.n_params for g in groups)
+    generic = np.zeros(size, dtype=bool)
+    k = N_GEO
+    for g in groups:
+        generic[k:k + g.n_params] = g.kind == GENERIC
+        k += g.n_params
+    if not generic.any():
+        return np.zeros((0, size))
+    phi = p.phi_of(groups)
+    assert phi is not None
+    weight = noise_mm / np.maximum(np.asarray(shape_scale_mm, dtype=float), max(noise_mm, 1e-9))
+    P = np.zeros((phi.shape[0] * 6, size))
+    P[:, generic] = (weight[None, :, None] * phi[:, :, generic[N_GEO:]]).reshape(-1, int(generic.sum()))
+    return P
+
+
 def fit_model(p: Problem, groups: list[TermGroup], start: IdentificationResult | None = None,
               label: str = "") -> IdentificationResult:
-    """Least squares of geometry + groups on the measure rows, warm-started from `start` when given."""
-    phi = p.phi_of(groups)
-    kwargs = {"estimator": "ls", "extra_regressors": phi, "extra_names": names_of(groups),
-              "max_iter": MAX_EVALUATIONS}
-    fit = None
-    if start is not None:
+    """Least squares of geometry + groups on the measure rows (Gauss-Newton), warm-started from `start` when
+    given, else from the nominal geometry; generic shapes are held by the problem's shape prior when it is set
+    (a shape and the geometry can otherwise trade against each other far along a valley the poses hardly see)."""
+    names = GEOMETRIC_42.names + names_of(groups)
+    data = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
+    P = np.zeros((0, len(names)))
+    if p.shape_prior is not None:
+        scale, noise = p.shape_prior
+        if noise is None:
+            noise = start.rms_residual if start is not None else float(np.min(scale))
+        P = prior_rows(p, groups, scale, noise)
+
+    def fun(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r, J = data(x)
+        return (np.concatenate([r, P @ x]), np.concatenate([J, P])) if P.size else (r, J)
+
+    x0 = _start(groups, start)
+    result = None
+    if x0 is not None:
         try:
-            fit = identify(p.robot, p.mea.legs_mm, p.mea.meas, x0=_start(groups, start), **kwargs)
+            result = gauss_newton(fun, x0)
         except KinematicsError:
-            fit = None
-    if fit is None or not fit.converged:
-        fit = identify(p.robot, p.mea.legs_mm, p.mea.meas, **kwargs)
-    if not fit.converged:
+            result = None
+    if result is None or not result[3]:
+        result = gauss_newton(fun, np.zeros(len(names)))
+    x, r, evaluations, converged, message = result
+    r = r[:6 * p.mea.n]
+    if not converged:
         name = label or ("geometry" if not groups else "geometry + " + ", ".join(g.key for g in groups))
         if name not in p.not_converged:
             p.not_converged.append(name)
-        log.warning("fit_not_converged", model=name, evaluations=fit.n_iterations, message=fit.message)
-    return fit
+        log.warning("fit_not_converged", model=name, evaluations=evaluations, message=message)
+    rms = float(np.sqrt(np.mean(r**2)))
+    return IdentificationResult(
+        x=x, names=names, model=GEOMETRIC_42.key, estimator="ls", formulation="forward", method="gauss-newton",
+        residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))), rms_residual=rms,
+        sigma=float(np.sqrt(r @ r / max(r.size - len(names), 1))), std_errors=None, covariance=None,
+        rank=len(names), n_iterations=evaluations, converged=converged, message=message, length_mm=p.length_mm,
+    )
 
 
 def _bounds(groups: list[TermGroup], size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -143,23 +232,12 @@ def final_fit(p: Problem, groups: list[TermGroup], start: IdentificationResult, 
     weighted by noise / scale), so the geometry takes what it can absorb and a shape is no larger than the data
     shows."""
     fit = start
-    phi = p.phi_of(groups)
-    generic = np.zeros(fit.x.size, dtype=bool)
-    k = N_GEO
-    for g in groups:
-        generic[k:k + g.n_params] = g.kind == GENERIC
-        k += g.n_params
     lo, hi = _bounds(groups, fit.x.size)
     inside = bool(np.all((fit.x >= lo) & (fit.x <= hi)))
-    if inside and not generic.any():
+    P = prior_rows(p, groups, shape_scale_mm, noise_mm)
+    if inside and not P.size:
         return fit
-    fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, phi)
-    weight = noise_mm / np.maximum(np.asarray(shape_scale_mm, dtype=float), max(noise_mm, 1e-9))
-    P = np.zeros((0, fit.x.size))
-    if generic.any():
-        assert phi is not None
-        P = np.zeros((phi.shape[0] * 6, fit.x.size))
-        P[:, generic] = (weight[None, :, None] * phi[:, :, generic[N_GEO:]]).reshape(-1, int(generic.sum()))
+    fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
 
     def residuals(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         try:

@@ -21,7 +21,7 @@ from hilcal.discovery.context import EffectContext
 from hilcal.discovery.term_groups import TermGroup
 
 OUTLIER_FACTOR = 4.0
-"""A measure row is a measurement outlier when the final model's left-out residual there is beyond 4 times the
+"""A measure row is a measurement outlier when the selected model's left-out residual there is beyond 4 times the
 median (for Gaussian noise in six pose components the median is about 2.4 sigma, so this is about 9 sigma)."""
 MAX_OUTLIER_SHARE = 0.05
 MIN_OUTLIER_ALLOWANCE = 2

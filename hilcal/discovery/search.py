@@ -54,12 +54,11 @@ from hilcal.discovery.fitting import (
 )
 from hilcal.discovery.generic_terms import generic_groups
 from hilcal.discovery.naming import named_effects
-from hilcal.discovery.noise import noise_yardstick
+from hilcal.discovery.noise import NoiseLevel, noise_yardstick
 from hilcal.discovery.physics import library_groups
 from hilcal.discovery.regression import cluster_robust_covariance
 from hilcal.discovery.result import CandidateResult, Diagnosis, SessionShift, Step
 from hilcal.discovery.screen import (
-    UnknownRows,
     known_median,
     outlier_sentence,
     outliers,
@@ -310,13 +309,6 @@ def _with_sentence(diag: Diagnosis, said: str, first: bool) -> Diagnosis:
     return dataclasses.replace(diag, summary=(*diag.summary, said), explanation=text)
 
 
-def _screen(diag: Diagnosis) -> tuple[UnknownRows, float]:
-    """The measure rows whose terms are unknown, and the median left-out residual of the others."""
-    found = unknown_rows(diag.groups, diag.context.rows(diag.measure))
-    median = float("nan") if diag.left_out_mm is None else known_median(diag.left_out_mm, found.rows)
-    return found, median
-
-
 def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: int, cmm_sigma_mm: float | None,
               max_steps: int, generic: bool, pose_sigma: tuple[float, float] | None,
               include_unconfirmed: bool) -> Diagnosis:
@@ -326,23 +318,26 @@ def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: 
         if not wiring.dead:
             rec = dataclasses.replace(rec, legs_mm=wiring.corrected(rec.legs_mm))
     kwargs = {"alpha": alpha, "n_boot": n_boot, "seed": seed, "cmm_sigma_mm": cmm_sigma_mm, "max_steps": max_steps,
-              "generic": generic, "pose_sigma": pose_sigma, "include_unconfirmed": include_unconfirmed}
+              "generic": generic, "pose_sigma": pose_sigma}
     ctx = EffectContext.from_recording(rec, robot)
-    diag = _search(rec, robot, ctx, **kwargs)
-    found, median = _screen(diag)
-    bad = outliers(diag.left_out_mm, found.rows)
+    searched = _searched(rec, robot, ctx, **kwargs)
+    found = unknown_rows(searched.sel.chosen, searched.p.ctx)
+    left_out = searched.left_out_mm()
+    median = known_median(left_out, found.rows)
+    bad = outliers(left_out, found.rows)
+    described = {"seed": seed, "include_unconfirmed": include_unconfirmed}
     if not bad.size and not found.rows.size:
-        return _wired(diag, wiring)
+        return _wired(_describe(searched, robot, **described), wiring)
     measure_rows = np.flatnonzero(rec.phase == "measure")
-    left_out = np.zeros(0) if diag.left_out_mm is None else diag.left_out_mm
     rows = measure_rows[bad]
     excluded = tuple({"seq": float(rec.seq[r]), "left_out_mm": float(left_out[k]),
                       "times_median": float(left_out[k] / median)} for r, k in zip(rows, bad, strict=True))
-    unknown = unknown_json(found, rec.seq[measure_rows], diag.left_out_mm, median)
-    said_unknown = unknown_sentence(found, unknown, diag.context.rows(diag.measure), _titles(diag.groups))
+    unknown = unknown_json(found, rec.seq[measure_rows], left_out, median)
+    said_unknown = unknown_sentence(found, unknown, searched.p.ctx, _titles(tuple(searched.sel.chosen)))
     log.info("rows_left_out", outliers=[e["seq"] for e in excluded], unknown=[e["seq"] for e in unknown])
     keep = ~np.isin(np.arange(rec.n), np.concatenate([rows, measure_rows[found.rows]]))
-    diag = _search(rec.rows(keep), robot, ctx.rows(keep), stops_from=rec, **kwargs)
+    searched = _searched(rec.rows(keep), robot, ctx.rows(keep), **kwargs)
+    diag = _describe(searched, robot, stops_from=rec, **described)
     if rows.size:
         at_stop = {int(r): f", leg {s.leg} at its {s.extreme}" for r in rows for s in diag.end_stops
                    if abs(rec.legs_mm[r, s.leg - 1] - s.reading_mm) <= END_STOP_TOLERANCE_MM}
@@ -385,23 +380,54 @@ def _judge(p: Problem, geo: IdentificationResult, sel: _Selection, shift: Sessio
             for k, s in enumerate(sel.steps)]
 
 
-def _search(rec: Recording, robot: Robot, ctx: EffectContext, *, alpha: float, n_boot: int, seed: int,
-            cmm_sigma_mm: float | None, max_steps: int, generic: bool, pose_sigma: tuple[float, float] | None,
-            include_unconfirmed: bool, stops_from: Recording | None = None) -> Diagnosis:
-    """The diagnosis of `rec` as given, with `ctx` its rows' context (computed on the whole recording when `rec` is a
-    subset of it); end stops are looked for in `stops_from`, the rows before any exclusion."""
+@dataclasses.dataclass
+class _Searched:
+    """The selection on one set of rows: the problem, its library, the geometry-only fit, the noise and the steps."""
+
+    rec: Recording
+    p: Problem
+    library: list[TermGroup]
+    untestable: dict[str, str]
+    geo: IdentificationResult
+    cv_geometry: float
+    leg_res: np.ndarray
+    noise: NoiseLevel
+    sel: _Selection
+
+    def left_out_mm(self) -> np.ndarray:
+        """Per measure row: the selected model's left-out residual length (mm), for the outlier screen."""
+        chosen = self.sel.chosen
+        return model_state(self.p, self.sel.fit if chosen else self.geo, chosen)[0].left_out_norms_mm()
+
+
+def _searched(rec: Recording, robot: Robot, ctx: EffectContext, *, alpha: float, n_boot: int, seed: int,
+              cmm_sigma_mm: float | None, max_steps: int, generic: bool,
+              pose_sigma: tuple[float, float] | None) -> _Searched:
+    """Geometry, noise yardstick and forward selection on `rec` as given, with `ctx` its rows' context (computed on
+    the whole recording when `rec` is a subset of it)."""
     p = Problem.of(rec, robot, ctx)
     library, untestable = library_groups(p.ctx, robot)
     candidates = library + (generic_groups(p.ctx) if generic else [])
     geo = fit_model(p, [], label="geometry only")
     cv_geometry = model_state(p, geo, [])[0].cv_mm
-
-    sel = _select(p, candidates, alpha, n_boot, seed, max_steps, geo)
-    chosen, rejected, alternatives = sel.chosen, sel.rejected, sel.alternatives
-    cv_final = _cv_mm(p, chosen, sel.fit) if chosen else cv_geometry
-
     leg_res = leg_residuals(p, geo, [])
-    scales, noise_mm = shape_scales(leg_res[p.measure]), max(sel.fit.rms_residual, 1e-6)
+    residuals_all = pose_difference(rec.meas, predict(p, geo, [], np.ones(rec.n, dtype=bool)), p.length_mm)
+    noise = noise_yardstick(rec, robot, residuals_all, p.length_mm, cmm_sigma_mm, pose_sigma, p.ctx_all.session)
+    p.shape_prior = (shape_scales(leg_res[p.measure]), None if noise.chosen is None else max(
+        float(np.sqrt(np.mean(np.trace(noise.chosen.covariance[p.measure], axis1=1, axis2=2)) / 6.0)), 1e-9))
+    sel = _select(p, candidates, alpha, n_boot, seed, max_steps, geo)
+    return _Searched(rec, p, library, untestable, geo, cv_geometry, leg_res, noise, sel)
+
+
+def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: bool,
+              stops_from: Recording | None = None) -> Diagnosis:
+    """The diagnosis of a selection: the final bounded fit, held-out figures and verdicts, noise comparison, shapes,
+    aliases, the compensation set and the answer in words; end stops are looked for in `stops_from`, the rows
+    before any exclusion."""
+    rec, p, geo, sel, noise, leg_res = s.rec, s.p, s.geo, s.sel, s.noise, s.leg_res
+    chosen, rejected, alternatives = sel.chosen, sel.rejected, sel.alternatives
+    cv_final = _cv_mm(p, chosen, sel.fit) if chosen else s.cv_geometry
+    scales, noise_mm = p.shape_prior[0], max(sel.fit.rms_residual, 1e-6)
     final = final_fit(p, chosen, sel.fit if chosen else geo, scales, noise_mm)
     r_final, J_final = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm,
                                          p.phi_of(chosen))(final.x)
@@ -410,8 +436,6 @@ def _search(rec: Recording, robot: Robot, ctx: EffectContext, *, alpha: float, n
     before = verify_accuracy(p, geo, [])
     after = verify_accuracy(p, final, chosen)
 
-    residuals_all = pose_difference(rec.meas, predict(p, geo, [], np.ones(rec.n, dtype=bool)), p.length_mm)
-    noise = noise_yardstick(rec, robot, residuals_all, p.length_mm, cmm_sigma_mm, pose_sigma, p.ctx_all.session)
     r_geo, J_geo = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm)(geo.x)
     ratio = None
     if noise.chosen is not None:
@@ -449,16 +473,16 @@ def _search(rec: Recording, robot: Robot, ctx: EffectContext, *, alpha: float, n
     stops = end_stops(rec if stops_from is None else stops_from, robot)
     verdict = explain.Verdict(unconfirmed, include_unconfirmed, compensation_after, bool(shift and shift.legs))
     answer = explain.Answer(
-        effect, effects, chosen, steps, params, std, noise, ratio, shapes, shift, rejected, untestable, aliases,
+        effect, effects, chosen, steps, params, std, noise, ratio, shapes, shift, rejected, s.untestable, aliases,
         before, after, findings, named, stops, tuple(p.not_converged), model_terms, verdict,
     )
     log.info("diagnosed", effects=effects, steps=len(steps), not_converged=p.not_converged, unconfirmed=unconfirmed)
     return Diagnosis(
         effect=effect, effects=tuple(effects), explanation=explain.compose(answer), parameters=params, std_errors=std,
         before=before, after=after, steps=tuple(steps),
-        candidates=_candidate_results(sel.first_tests, library, untestable, chosen_keys),
+        candidates=_candidate_results(sel.first_tests, s.library, s.untestable, chosen_keys),
         rejected=tuple(rejected.items()), ambiguous_with=tuple(a.other for a in aliases),
-        cv_rms_geometry_mm=cv_geometry, cv_rms_final_mm=cv_final, noise=noise, noise_ratio=ratio,
+        cv_rms_geometry_mm=s.cv_geometry, cv_rms_final_mm=cv_final, noise=noise, noise_ratio=ratio,
         shapes=tuple(shapes), session_shift=shift, findings=findings, groups=tuple(chosen), geometry_fit=geo,
         final_fit=final, leg_residuals_mm=leg_res, leg_residuals_final_mm=leg_residuals(p, final, chosen),
         context=p.ctx_all, measure=p.measure, named=named, aliases=aliases, end_stops=stops,
