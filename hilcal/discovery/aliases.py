@@ -26,6 +26,7 @@ from hilcal.discovery.term_groups import LIBRARY, TermGroup, stack_phi
 from hilcal.identification import IdentificationResult, residual_function
 from hilcal.robot import Robot
 
+N_GEO = 42
 ALIAS_SIGNATURE = 0.8
 """Cosine of the fitted leg-length signatures above which two effects look alike on this recording."""
 ALIAS_GAIN = 0.9
@@ -188,3 +189,45 @@ def separation(robot: Robot, final: IdentificationResult, model: list[TermGroup]
 def _with_payload(robot: Robot, payload_kg: float) -> Robot:
     mass = robot.spec.mass.model_copy(update={"moving_mass_kg": robot.moving_mass_kg + payload_kg})
     return replace(robot, spec=robot.spec.model_copy(update={"mass": mass}))
+
+
+def final_without(final: IdentificationResult, chosen: list[TermGroup], group: TermGroup) -> IdentificationResult:
+    """The final fit with one chosen group's parameters removed (to test it against another as an alias)."""
+    if group not in chosen:
+        return final
+    start = N_GEO + sum(g.n_params for g in chosen[:chosen.index(group)])
+    keep = np.r_[0:start, start + group.n_params:final.x.size]
+    return replace(final, x=final.x[keep], names=tuple(np.array(final.names)[keep]))
+
+
+def named_aliases(p: Any, chosen: list[TermGroup], chosen_tests: dict[str, GroupTest],
+                  alike: dict[str, tuple[GroupTest, ...]], evidence: dict[str, dict[str, float]],
+                  final: IdentificationResult, seed: int) -> tuple[Alias, ...]:
+    """Every named library effect's near-aliases, with their values and what would separate them.
+
+    `p` is the diagnosis' problem (`hilcal.discovery.fitting.Problem`); `alike` per chosen group the library groups
+    that looked like it when it was chosen, `evidence` their log evidence."""
+    out = []
+    chosen_keys = [c.key for c in chosen]
+    for g in chosen:
+        chosen_test = chosen_tests.get(g.key)
+        if g.kind != LIBRARY or chosen_test is None:
+            continue
+        group_evidence = evidence.get(g.key, {})
+        for t in alike.get(g.key, ()):
+            if t.group.key in chosen_keys and chosen_keys.index(t.group.key) < chosen_keys.index(g.key):
+                continue
+            model = [c for c in chosen if c.key != t.group.key]
+            now, poses, after, payload = separation(p.robot, final_without(final, chosen, t.group), model, g,
+                                                    t.group, p.mea.legs_mm, p.mea.meas, p.ctx, seed)
+            factor = None
+            if g.key in group_evidence and t.group.key in group_evidence:
+                factor = (group_evidence[g.key] - group_evidence[t.group.key]) / np.log(10.0)
+            cosine = similar(chosen_test, t)
+            out.append(Alias(
+                g.key, t.group.key, t.group.title, cosine, t.press_gain_mm / max(chosen_test.press_gain_mm, 1e-300),
+                factor, dict(zip(t.group.names, map(float, t.estimate), strict=True)),
+                dict(zip(t.group.names, map(float, t.std_errors), strict=True)), t.grades,
+                alias_why(g, t.group, p.ctx, cosine), now, poses, after, payload, t.group.key in chosen_keys,
+            ))
+    return tuple(out)

@@ -15,7 +15,7 @@ from collections.abc import Callable
 
 import numpy as np
 import structlog
-from scipy.optimize import least_squares, lsq_linear
+from scipy.optimize import lsq_linear
 
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.noise import find_repeats
@@ -33,7 +33,6 @@ log = structlog.get_logger(__name__)
 
 N_GEO = 42
 DL0_COLUMNS = [7 * i + 6 for i in range(6)]
-MAX_EVALUATIONS = 200
 
 
 @dataclasses.dataclass
@@ -105,12 +104,14 @@ data cannot see get no step (minimum-norm steps), so a fit never drifts along th
 
 
 def gauss_newton(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0: np.ndarray,
-                 max_iter: int | None = None) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
-    """Least squares by Gauss-Newton with minimum-norm steps on the column-scaled Jacobian and step halving.
+                 max_iter: int | None = None, bounds: tuple[np.ndarray, np.ndarray] | None = None,
+                 ) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
+    """Least squares by Gauss-Newton with minimum-norm steps on the column-scaled Jacobian and step shortening.
 
     The diagnosis' models are linear in every effect parameter and nearly linear in the small geometric errors,
     so from a warm start a few steps reach the minimum; a Levenberg-Marquardt search with a trust region crawled for
-    hundreds of evaluations along directions the poses hardly see (benchmarks/bench_diagnose.py).
+    hundreds of evaluations along directions the poses hardly see (benchmarks/bench_diagnose.py). With `bounds`
+    (x0 inside them), a step that would leave them is the bounded linear least-squares step instead.
     Returns (x, residuals, evaluations, converged, message)."""
     max_iter = GN_ITERATIONS if max_iter is None else max_iter
     x = np.asarray(x0, dtype=float).copy()
@@ -121,6 +122,8 @@ def gauss_newton(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0:
         c = np.sqrt(np.mean(J**2, axis=0))
         c = np.where(c > 0, c, 1.0)
         d = np.linalg.lstsq(J / c, -r, rcond=RCOND)[0] / c
+        if bounds is not None and np.any((x + d < bounds[0]) | (x + d > bounds[1])):
+            d = lsq_linear(J / c, -r, bounds=((bounds[0] - x) * c, (bounds[1] - x) * c), method="bvls").x / c
         predicted = float(np.sum((J @ d) ** 2))
         if predicted <= GN_TOLERANCE * cost:
             return x, r, evaluations, True, "Gauss-Newton: the next step gains nothing"
@@ -243,8 +246,8 @@ def final_fit(p: Problem, groups: list[TermGroup], start: IdentificationResult, 
         try:
             r, J = fun(x)
         except KinematicsError:
-            # A trial step so far off that some poses have no forward kinematics: the trust region shrinks on
-            # non-finite residuals (scipy's trf), so it is rejected rather than ending the diagnosis.
+            # A trial step so far off that some poses have no forward kinematics: it is shortened (gauss_newton),
+            # not the end of the diagnosis.
             r, J = np.full(6 * p.mea.n, np.inf), np.zeros((6 * p.mea.n, x.size))
         return np.concatenate([r, P @ x]), np.concatenate([J, P])
 
@@ -255,14 +258,13 @@ def final_fit(p: Problem, groups: list[TermGroup], start: IdentificationResult, 
     if not np.all(np.isfinite(residuals(x0)[0])):
         p.not_converged.append("final model (bounded, shapes held to the data)")
         return fit
-    sol = least_squares(lambda x: residuals(x)[0], x0, jac=lambda x: residuals(x)[1], bounds=(lo, hi),
-                        method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=MAX_EVALUATIONS)
-    if sol.status <= 0:
+    x, _, _, converged, message = gauss_newton(residuals, x0, bounds=(lo, hi))
+    if not converged:
         p.not_converged.append("final model (bounded, shapes held to the data)")
-    r = fun(sol.x)[0]
-    return dataclasses.replace(fit, x=sol.x, residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))),
-                               rms_residual=float(np.sqrt(np.mean(r**2))), converged=bool(sol.status > 0),
-                               message=f"final refit: {sol.message}")
+    r = fun(x)[0]
+    return dataclasses.replace(fit, x=x, residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))),
+                               rms_residual=float(np.sqrt(np.mean(r**2))), converged=converged,
+                               message=f"final refit: {message}")
 
 
 def _inside_start(residuals: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x: np.ndarray, lo: np.ndarray,

@@ -51,6 +51,27 @@ def unknown_rows(groups: tuple[TermGroup, ...] | list[TermGroup], ctx: EffectCon
                        [tuple(k for k, m in masks.items() if m[r].any()) for r in rows])
 
 
+@dataclass(frozen=True)
+class Screened:
+    """What the screen found among the measure rows under one model: rows with unknown terms and outliers."""
+
+    found: UnknownRows
+    left_out_mm: np.ndarray
+    outliers: np.ndarray
+    median_mm: float
+
+    @property
+    def any(self) -> bool:
+        return bool(self.outliers.size or self.found.rows.size)
+
+
+def screen_rows(groups: tuple[TermGroup, ...] | list[TermGroup], ctx: EffectContext,
+                left_out_mm: np.ndarray) -> Screened:
+    """The screen of the measure rows (context `ctx`, left-out residuals of a model with `groups`)."""
+    found = unknown_rows(groups, ctx)
+    return Screened(found, left_out_mm, outliers(left_out_mm, found.rows), known_median(left_out_mm, found.rows))
+
+
 def outliers(left_out_mm: np.ndarray | None, unknown: np.ndarray | None = None) -> np.ndarray:
     """Measure rows (indices) whose left-out residual is beyond OUTLIER_FACTOR times the median of the rows whose
     terms are known; rows in `unknown` are never outliers. None are returned when more than the allowance would go

@@ -26,7 +26,7 @@ import structlog
 from threadpoolctl import threadpool_limits
 
 from hilcal.discovery import explain
-from hilcal.discovery.aliases import Alias, alias_why, resolve, separation
+from hilcal.discovery.aliases import named_aliases, resolve
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.corrections import compensation_set
 from hilcal.discovery.findings import (
@@ -59,18 +59,20 @@ from hilcal.discovery.physics import library_groups
 from hilcal.discovery.regression import cluster_robust_covariance
 from hilcal.discovery.result import CandidateResult, Diagnosis, SessionShift, Step
 from hilcal.discovery.screen import (
-    known_median,
+    OUTLIER_FACTOR,
+    Screened,
     outlier_sentence,
-    outliers,
+    screen_rows,
     unknown_json,
     unknown_rows,
     unknown_sentence,
 )
-from hilcal.discovery.selection import GroupTest, assess, choose, similar
+from hilcal.discovery.selection import GroupTest, assess, choose
 from hilcal.discovery.shapes import shapes_for
-from hilcal.discovery.term_groups import GENERIC, LIBRARY, TermGroup
+from hilcal.discovery.term_groups import GENERIC, LIBRARY, TermGroup, stack_phi
 from hilcal.error_models import pose_difference
 from hilcal.identification import IdentificationResult, residual_function
+from hilcal.kinematics import forward_kinematics
 from hilcal.recording import Recording
 from hilcal.robot import Robot
 from hilcal.wiring import LegWiring, check_wiring
@@ -132,6 +134,8 @@ class _Selection:
     fit: IdentificationResult
     models: list[tuple[list[TermGroup], IdentificationResult]] = dataclasses.field(default_factory=list)
     """The model after every step (groups and fit), for the held-out verdict of each step."""
+    screened: Screened | None = None
+    """The screen that stopped the selection early (`_select`'s `early`), else None."""
 
 
 def _drop_test(p: Problem, chosen: list[TermGroup], group: TermGroup, alpha: float, n_boot: int,
@@ -180,8 +184,11 @@ def _swap(p: Problem, sel: _Selection, library: list[TermGroup], alpha: float, n
 
 
 def _select(p: Problem, candidates: list[TermGroup], alpha: float, n_boot: int, seed: int, max_steps: int,
-            geo: IdentificationResult) -> _Selection:
-    """Forward selection (alpha / k at step k) with backward elimination of groups that the later ones explain."""
+            geo: IdentificationResult, early: bool = False) -> _Selection:
+    """Forward selection (alpha / k at step k) with backward elimination of groups that the later ones explain.
+
+    With `early`, the selection stops after the first step whose model finds rows to leave out (`screen_rows`): the
+    search will run again without them, so its later steps would be spent for nothing."""
     sel = _Selection([], [], [], {}, {}, {}, {}, {}, geo)
     state, d_dl0 = model_state(p, geo, [])
     remaining = list(candidates)
@@ -230,46 +237,14 @@ def _select(p: Problem, candidates: list[TermGroup], alpha: float, n_boot: int, 
                               best.f_statistic, best.p_value, best.p_wild, best.p_gauss, cv_now, best.cv_rms_mm,
                               verify_accuracy(p, sel.fit, sel.chosen), tuple(removed)))
         state, d_dl0 = model_state(p, sel.fit, sel.chosen)
+        if early:
+            screened = screen_rows(sel.chosen, p.ctx, state.left_out_norms_mm())
+            if screened.any:
+                sel.screened = screened
+                return sel
     if sel.chosen:
         _swap(p, sel, [g for g in candidates if g.kind == LIBRARY], alpha, n_boot, seed + 999)
     return sel
-
-
-def _aliases(p: Problem, sel: _Selection, final: IdentificationResult, seed: int) -> tuple[Alias, ...]:
-    """Every named library effect's near-aliases, with their values and what would separate them."""
-    out = []
-    for g in sel.chosen:
-        chosen_test = sel.chosen_tests.get(g.key)
-        if g.kind != LIBRARY or chosen_test is None:
-            continue
-        evidence = sel.evidence.get(g.key, {})
-        chosen_keys = [c.key for c in sel.chosen]
-        for t in sel.alike.get(g.key, ()):
-            if t.group.key in chosen_keys and chosen_keys.index(t.group.key) < chosen_keys.index(g.key):
-                continue
-            model = [c for c in sel.chosen if c.key != t.group.key]
-            now, poses, after, payload = separation(p.robot, final_without(final, sel.chosen, t.group), model, g,
-                                                    t.group, p.mea.legs_mm, p.mea.meas, p.ctx, seed)
-            factor = None
-            if g.key in evidence and t.group.key in evidence:
-                factor = (evidence[g.key] - evidence[t.group.key]) / np.log(10.0)
-            cosine = similar(chosen_test, t)
-            out.append(Alias(
-                g.key, t.group.key, t.group.title, cosine, t.press_gain_mm / max(chosen_test.press_gain_mm, 1e-300),
-                factor, dict(zip(t.group.names, map(float, t.estimate), strict=True)),
-                dict(zip(t.group.names, map(float, t.std_errors), strict=True)), t.grades,
-                alias_why(g, t.group, p.ctx, cosine), now, poses, after, payload, t.group.key in chosen_keys,
-            ))
-    return tuple(out)
-
-
-def final_without(final: IdentificationResult, chosen: list[TermGroup], group: TermGroup) -> IdentificationResult:
-    """The final fit with one chosen group's parameters removed (to test it against another as an alias)."""
-    if group not in chosen:
-        return final
-    start = N_GEO + sum(g.n_params for g in chosen[:chosen.index(group)])
-    keep = np.r_[0:start, start + group.n_params:final.x.size]
-    return dataclasses.replace(final, x=final.x[keep], names=tuple(np.array(final.names)[keep]))
 
 
 def diagnose(
@@ -320,31 +295,65 @@ def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: 
     kwargs = {"alpha": alpha, "n_boot": n_boot, "seed": seed, "cmm_sigma_mm": cmm_sigma_mm, "max_steps": max_steps,
               "generic": generic, "pose_sigma": pose_sigma}
     ctx = EffectContext.from_recording(rec, robot)
-    searched = _searched(rec, robot, ctx, **kwargs)
-    found = unknown_rows(searched.sel.chosen, searched.p.ctx)
-    left_out = searched.left_out_mm()
-    median = known_median(left_out, found.rows)
-    bad = outliers(left_out, found.rows)
     described = {"seed": seed, "include_unconfirmed": include_unconfirmed}
-    if not bad.size and not found.rows.size:
+    searched = _searched(rec, robot, ctx, early=True, **kwargs)
+    screened = searched.screened()
+    if not screened.any:
         return _wired(_describe(searched, robot, **described), wiring)
     measure_rows = np.flatnonzero(rec.phase == "measure")
-    rows = measure_rows[bad]
+    leave = _left_out_rows(screened, measure_rows, rec.n)
+    again = _searched(rec.rows(~leave), robot, ctx.rows(~leave), **kwargs)
+    if searched.early and not _confirmed(again, screened, rec, ctx, measure_rows):
+        log.info("early_screen_not_confirmed")
+        searched = _searched(rec, robot, ctx, **kwargs)
+        screened = searched.screened()
+        leave = _left_out_rows(screened, measure_rows, rec.n)
+        again = _searched(rec.rows(~leave), robot, ctx.rows(~leave), **kwargs)
+    return _wired(_with_rows_left_out(_describe(again, robot, stops_from=rec, **described), screened, searched, rec,
+                                      measure_rows), wiring)
+
+
+def _left_out_rows(screened: Screened, measure_rows: np.ndarray, n: int) -> np.ndarray:
+    """[n] the rows of the recording to leave out: outliers and rows whose terms are unknown."""
+    leave = np.zeros(n, dtype=bool)
+    leave[measure_rows[np.concatenate([screened.outliers, screened.found.rows]).astype(int)]] = True
+    return leave
+
+
+def _confirmed(again: _Searched, screened: Screened, rec: Recording, ctx: EffectContext,
+               measure_rows: np.ndarray) -> bool:
+    """Whether the rows an early screen left out are what the model fitted without them says: every outlier's
+    left-out residual still beyond OUTLIER_FACTOR times the median, every row of unknown history still unknown to its
+    terms, and no further row to leave out."""
+    if again.screened().any:
+        return False
+    rows = measure_rows[screened.outliers]
+    median = again.screened().median_mm
+    if rows.size and np.any(again.predicted_mm(rec.rows(rows), ctx.rows(rows)) <= OUTLIER_FACTOR * median):
+        return False
+    unknown = measure_rows[screened.found.rows]
+    return bool(not unknown.size or set(unknown_rows(again.sel.chosen, ctx.rows(unknown)).rows.tolist())
+                == set(range(unknown.size)))
+
+
+def _with_rows_left_out(diag: Diagnosis, screened: Screened, searched: _Searched, rec: Recording,
+                        measure_rows: np.ndarray) -> Diagnosis:
+    """The diagnosis of the kept rows with the sentences and JSON of the rows left out."""
+    left_out, median = screened.left_out_mm, screened.median_mm
+    rows = measure_rows[screened.outliers]
     excluded = tuple({"seq": float(rec.seq[r]), "left_out_mm": float(left_out[k]),
-                      "times_median": float(left_out[k] / median)} for r, k in zip(rows, bad, strict=True))
-    unknown = unknown_json(found, rec.seq[measure_rows], left_out, median)
-    said_unknown = unknown_sentence(found, unknown, searched.p.ctx, _titles(tuple(searched.sel.chosen)))
+                      "times_median": float(left_out[k] / median)}
+                     for r, k in zip(rows, screened.outliers, strict=True))
+    unknown = unknown_json(screened.found, rec.seq[measure_rows], left_out, median)
     log.info("rows_left_out", outliers=[e["seq"] for e in excluded], unknown=[e["seq"] for e in unknown])
-    keep = ~np.isin(np.arange(rec.n), np.concatenate([rows, measure_rows[found.rows]]))
-    searched = _searched(rec.rows(keep), robot, ctx.rows(keep), **kwargs)
-    diag = _describe(searched, robot, stops_from=rec, **described)
     if rows.size:
         at_stop = {int(r): f", leg {s.leg} at its {s.extreme}" for r in rows for s in diag.end_stops
                    if abs(rec.legs_mm[r, s.leg - 1] - s.reading_mm) <= END_STOP_TOLERANCE_MM}
         diag = _with_sentence(diag, outlier_sentence(rows, excluded, median, at_stop), True)
-    if said_unknown:
-        diag = _with_sentence(diag, said_unknown, False)
-    return _wired(dataclasses.replace(diag, excluded=excluded, unknown_rows=unknown), wiring)
+    said = unknown_sentence(screened.found, unknown, searched.p.ctx, _titles(tuple(searched.sel.chosen)))
+    if said:
+        diag = _with_sentence(diag, said, False)
+    return dataclasses.replace(diag, excluded=excluded, unknown_rows=unknown)
 
 
 def _wired(diag: Diagnosis, wiring: LegWiring) -> Diagnosis:
@@ -394,17 +403,33 @@ class _Searched:
     noise: NoiseLevel
     sel: _Selection
 
-    def left_out_mm(self) -> np.ndarray:
-        """Per measure row: the selected model's left-out residual length (mm), for the outlier screen."""
+    @property
+    def early(self) -> bool:
+        """The selection stopped at its first step that found rows to leave out."""
+        return self.sel.screened is not None
+
+    def screened(self) -> Screened:
+        """The screen of the measure rows under the selected model (or the model that stopped it early)."""
+        if self.sel.screened is not None:
+            return self.sel.screened
         chosen = self.sel.chosen
-        return model_state(self.p, self.sel.fit if chosen else self.geo, chosen)[0].left_out_norms_mm()
+        state = model_state(self.p, self.sel.fit if chosen else self.geo, chosen)[0]
+        return screen_rows(chosen, self.p.ctx, state.left_out_norms_mm())
+
+    def predicted_mm(self, rec: Recording, ctx: EffectContext) -> np.ndarray:
+        """Per row of another set of rows: the length (mm, rotations at the platform's length) of the selected
+        model's residual there; for rows the fit left out, their left-out residual."""
+        chosen, fit = self.sel.chosen, self.sel.fit if self.sel.chosen else self.geo
+        legs = rec.legs_mm + (stack_phi(chosen, ctx) @ fit.x[N_GEO:] if chosen else 0.0)
+        predicted = forward_kinematics(fit.geometry(self.p.robot), legs, rec.meas)
+        return np.linalg.norm(pose_difference(rec.meas, predicted, self.p.length_mm), axis=1)
 
 
 def _searched(rec: Recording, robot: Robot, ctx: EffectContext, *, alpha: float, n_boot: int, seed: int,
               cmm_sigma_mm: float | None, max_steps: int, generic: bool,
-              pose_sigma: tuple[float, float] | None) -> _Searched:
+              pose_sigma: tuple[float, float] | None, early: bool = False) -> _Searched:
     """Geometry, noise yardstick and forward selection on `rec` as given, with `ctx` its rows' context (computed on
-    the whole recording when `rec` is a subset of it)."""
+    the whole recording when `rec` is a subset of it); `early`: see `_select`."""
     p = Problem.of(rec, robot, ctx)
     library, untestable = library_groups(p.ctx, robot)
     candidates = library + (generic_groups(p.ctx) if generic else [])
@@ -415,7 +440,7 @@ def _searched(rec: Recording, robot: Robot, ctx: EffectContext, *, alpha: float,
     noise = noise_yardstick(rec, robot, residuals_all, p.length_mm, cmm_sigma_mm, pose_sigma, p.ctx_all.session)
     p.shape_prior = (shape_scales(leg_res[p.measure]), None if noise.chosen is None else max(
         float(np.sqrt(np.mean(np.trace(noise.chosen.covariance[p.measure], axis1=1, axis2=2)) / 6.0)), 1e-9))
-    sel = _select(p, candidates, alpha, n_boot, seed, max_steps, geo)
+    sel = _select(p, candidates, alpha, n_boot, seed, max_steps, geo, early)
     return _Searched(rec, p, library, untestable, geo, cv_geometry, leg_res, noise, sel)
 
 
@@ -457,7 +482,7 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
     left_out = model_state(p, final, chosen)[0].left_out_norms_mm()
     offsets = zero_offsets(robot, final.geometry(robot))
     zero_said = zero_sentence(robot, offsets)
-    aliases = _aliases(p, sel, final, seed)
+    aliases = named_aliases(p, sel.chosen, sel.chosen_tests, sel.alike, sel.evidence, final, seed)
 
     effects: list[str] = []
     for g in chosen:
