@@ -1,6 +1,7 @@
 """`hilcal diagnose --report DIR`: plots, diagnosis.json, the compensation set (compensation.json with the refitted
-geometry and every term, and one CSV table per generic term), proposed extra poses (CSV) and a self-contained
-index.html that opens with one sentence per finding and the parameter table.
+geometry and every term, and one CSV table per generic term), proposed extra poses (CSV), the digital twin's
+comparison (twin.json, twin.png; its sim_config.toml is written by the command) and a self-contained index.html
+that opens with one sentence per finding and the parameter table.
 
 The compensation set is consistent: geometric length = reported + the sum of its terms, with its geometry; every
 table is the correction (mm) to ADD to the reported length of its leg against its variable, over the recorded
@@ -21,6 +22,7 @@ from hilcal.discovery.corrections import CompensationSet, Term
 from hilcal.discovery.explain import title_of
 from hilcal.discovery.result import Diagnosis, Shape, Step
 from hilcal.reports import diagnosis_plots as plots
+from hilcal.reports.diagnosis_twin import TwinComparison, twin_html, twin_plot
 from hilcal.robot import POSE_AXES
 
 
@@ -96,9 +98,16 @@ def _verdict(step: Step) -> str:
     return f"{word} ({step.judged_before_mm:.4f} -> {step.judged_mm:.4f} mm)"
 
 
-def write_report(diag: Diagnosis, out_dir: Path) -> Path:
-    """Write every file of the report into out_dir; return the page path."""
+def write_report(diag: Diagnosis, out_dir: Path, twin: TwinComparison | None = None,
+                 twin_notes: tuple[str, ...] = ()) -> Path:
+    """Write every file of the report into out_dir; return the page path. With `twin` (the recording replayed on the
+    digital twin, see procedures/cli/twin.py) also twin.json, twin.png and the page's twin section."""
     out_dir.mkdir(parents=True, exist_ok=True)
+    twin_section = ""
+    if twin is not None:
+        (out_dir / "twin.json").write_text(json.dumps({**twin.to_json(), "notes": list(twin_notes)}, indent=2))
+        twin_plot(twin, out_dir / "twin.png")
+        twin_section = twin_html(twin, _img(out_dir / "twin.png"), twin_notes)
     plots.leg_plot(diag, out_dir / "legs.png")
     plots.time_plot(diag, out_dir / "time.png")
     plots.waterfall_plot(diag, out_dir / "steps.png")
@@ -156,6 +165,7 @@ table{{border-collapse:collapse;margin:.5em 0}}td,th{{border:1px solid #ccc;padd
 <h2>Evidence</h2><p>{html.escape(diag.explanation)}</p>
 <h2>Held-out verification poses</h2><p>geometry only: {acc(diag.before)}<br>final model: {acc(diag.after)}</p>
 <h2>Selection steps</h2>{steps}{_img(out_dir / "steps.png")}
+{twin_section}
 <h2>Noise yardstick</h2>{noise}{_img(out_dir / "noise.png")}
 <h2>Unexplained terms</h2>{''.join(shape_html) or '<p>none</p>'}
 <h2>Library candidates (first step)</h2>{candidates}
