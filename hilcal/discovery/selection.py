@@ -169,24 +169,30 @@ def _min_p_adjust(p_obs: np.ndarray, f_star: np.ndarray, ranks: np.ndarray, dof:
 def _bases(Q: np.ndarray, dof: int, columns: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """(index, projected columns Xt, orthonormal basis Qk) of every group that adds something, batched by width.
 
-    Every group's columns are projected off the model in one product. The basis comes from the eigen-decomposition
-    of the small Gram matrix of the column-scaled projection (Qk = Xs V / sqrt(lambda)), formed for a whole width
-    class at once; groups whose Gram matrix is ill-conditioned take an SVD instead (batched too)."""
+    Every group's columns are projected off the model in one product, laid out width class by width class so each
+    class is one contiguous block. The basis comes from the eigen-decomposition of the small Gram matrix of the
+    column-scaled projection (Qk = Xs V / sqrt(lambda)), formed for a whole width class at once; groups whose Gram
+    matrix is ill-conditioned take an SVD instead (batched too)."""
     if not columns:
         return []
     widths = np.array([X.shape[1] for X in columns])
-    starts = np.concatenate([[0], np.cumsum(widths)[:-1]])
-    X_all = np.concatenate(columns, axis=1)
+    order = np.argsort(widths, kind="stable")
+    X_all = np.concatenate([columns[k] for k in order], axis=1)
     Xt_all = X_all - Q @ (Q.T @ X_all)
+    norm_x2 = np.einsum("ij,ij->j", X_all, X_all)
+    col2 = np.einsum("ij,ij->j", Xt_all, Xt_all)
+    m = X_all.shape[0]
     out = []
+    first_column, first_group = 0, 0
     for width in np.unique(widths):
-        idx = np.flatnonzero(widths == width)
-        take = (starts[idx][:, None] + np.arange(width)[None, :]).ravel()
-        X = X_all[:, take].reshape(X_all.shape[0], idx.size, width).transpose(1, 0, 2)
-        Xt = Xt_all[:, take].reshape(X_all.shape[0], idx.size, width).transpose(1, 0, 2)
-        norm_x = np.linalg.norm(X, axis=(1, 2))
-        norm_t = np.linalg.norm(Xt, axis=(1, 2))
-        col = np.linalg.norm(Xt, axis=1)
+        n = int(np.sum(widths == width))
+        idx = order[first_group:first_group + n]
+        cols = slice(first_column, first_column + n * width)
+        first_group, first_column = first_group + n, first_column + n * width
+        Xt = Xt_all[:, cols].reshape(m, n, width).transpose(1, 0, 2)
+        norm_x = np.sqrt(norm_x2[cols].reshape(n, width).sum(axis=1))
+        col = np.sqrt(col2[cols].reshape(n, width))
+        norm_t = np.sqrt(np.sum(col**2, axis=1))
         scaled = Xt / np.where(col > 0, col, 1.0)[:, None, :]
         lam, V = np.linalg.eigh(np.swapaxes(scaled, 1, 2) @ scaled)
         s = np.sqrt(np.clip(lam[:, ::-1], 0.0, None))
