@@ -11,7 +11,8 @@ those, simulated on the independent rig (`sim_devices`) for the medium electric 
   motor-encoder legs re-homed at the second power-on (a zero shift of tens of µm on the verify rows);
 - a mis-set mm per revolution on one leg (a scale fault) and drives soft enough to be a near-alias of it;
 - out-of-library physics: a cyclic error over the stroke (a drum or pinion with runout, period 70-110 mm) and a
-  base universal joint whose axes do not meet (a shape in the base joint angle);
+  base universal joint whose axes do not meet by 3-5 mm (a shape in the base joint angle; its constant part makes
+  every leg read a few mm long, which the diagnosis reports as a leg-zero set-up fault);
 - one measure row with a gross position error (a probing error), no commanded poses, no temperature column.
 
 ``python benchmarks/studies/diagnosis_real_shaped.py --out DIR`` writes ``real_shaped_<seed>.csv`` and the robot file

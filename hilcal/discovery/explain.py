@@ -77,9 +77,13 @@ def _range_words(term: Any) -> str:
     return f" over the recorded {lo:.4g}-{hi:.4g} {term.variable}"
 
 
-def _shape_sentences(shapes: list[Shape], compensation: Any, unconfirmed: tuple[str, ...] = ()) -> list[str]:
+def _shape_sentences(shapes: list[Shape], compensation: Any, unconfirmed: tuple[str, ...] = (),
+                     steps: tuple[Step, ...] | list[Step] = (), shifted: bool = False) -> list[str]:
     """One sentence per generic group: where, how big over the recorded range, whether it is pinned down, whether
-    the held-out poses confirm it."""
+    the held-out poses confirm it (the held-out figures of its step, with the session shift removed when one is
+    reported, as the verdict judges them)."""
+    judged = {s.key: (s.judged_before_mm, s.judged_mm) for s in steps
+              if s.judged_before_mm is not None and s.judged_mm is not None}
     out = []
     sizes = {} if compensation is None else {(t.group, t.leg): t for t in compensation.terms}
     for key in dict.fromkeys(s.group.key for s in shapes):
@@ -93,7 +97,10 @@ def _shape_sentences(shapes: list[Shape], compensation: Any, unconfirmed: tuple[
             parts.append(f"leg {s.leg + 1} ±{_um(size)}{where}")
         text = f"Unexplained (no library effect describes it): {first.group.sentence} ({'; '.join(parts)})"
         text += _drift_words([sizes[(key, s.leg)] for s in group_shapes if (key, s.leg) in sizes])
-        if first.verify_before_mm is not None and first.verify_after_mm is not None:
+        if key in judged:
+            text += (f"; modelling it takes the held-out verify RMS{' (session shift removed)' if shifted else ''} "
+                     f"from {judged[key][0]:.4f} to {judged[key][1]:.4f} mm")
+        elif first.verify_before_mm is not None and first.verify_after_mm is not None:
             text += (f"; modelling it takes the held-out verify RMS from {first.verify_before_mm:.4f} to "
                      f"{first.verify_after_mm:.4f} mm")
         if key in unconfirmed:
@@ -165,7 +172,8 @@ def summary_sentences(a: Answer) -> list[str]:
     not_converged, effects, ratio, noise = a.not_converged, a.effects, a.ratio, a.noise
     unconfirmed = () if a.verdict is None else a.verdict.unconfirmed
     out = [_named_sentence(n, tuple(g.effect for g in a.chosen if g.key in unconfirmed)) for n in named]
-    out += _shape_sentences(list(shapes), a.compensation, unconfirmed)
+    out += _shape_sentences(list(shapes), a.compensation, unconfirmed, a.steps,
+                            a.verdict is not None and a.verdict.shift_removed)
     out += [_alias_sentence(x) for x in aliases]
     if shift is not None and shift.legs:
         moved = ", ".join(f"leg {i} {shift.shift_mm[i - 1] * 1000:+.1f} ± {shift.std_error_mm[i - 1] * 1000:.1f} µm"
