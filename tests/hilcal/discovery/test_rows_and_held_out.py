@@ -8,6 +8,7 @@ The recordings come from the independent rig (`sim_devices`) on the diagnosis st
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 from dataclasses import fields
 from pathlib import Path
@@ -128,3 +129,21 @@ def test_an_unconfirmed_table_is_not_exported_unless_asked(worse_on_held_out):
     assert key in {t.group for t in asked.compensation.terms}
     np.testing.assert_allclose(np.array(list(asked.compensation.geometry_mm.values())), asked.final_fit.x[:42])
     assert "as asked (--include-unconfirmed)" in next(s for s in asked.summary if s.startswith("Not confirmed"))
+
+
+def test_the_command_leaves_the_unconfirmed_table_out_unless_asked(worse_on_held_out, tmp_path):
+    from typer.testing import CliRunner
+
+    from hilcal.recording import write_recording
+    from procedures.cli.app import app
+
+    rec, diag, _ = worse_on_held_out
+    write_recording(tmp_path / "rec.csv", rec)
+    groups = []
+    for flag in ([], ["--include-unconfirmed"]):
+        done = CliRunner().invoke(app, ["diagnose", str(tmp_path / "rec.csv"), "--json", *flag])
+        assert done.exit_code == 0, done.output
+        data = json.loads(done.output)
+        assert data["unconfirmed"] == list(diag.unconfirmed)
+        groups.append({t["group"] for t in data["compensation"]["terms"]})
+    assert diag.unconfirmed[0] not in groups[0] and diag.unconfirmed[0] in groups[1]
