@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from hilcal.discovery.augmentation import augment
+from hilcal.discovery.augmentation import augment, candidate_jacobians, candidate_pool
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.selection import GroupTest, similar
 from hilcal.discovery.term_groups import LIBRARY, TermGroup, stack_phi
@@ -174,11 +174,16 @@ def separation(robot: Robot, final: IdentificationResult, model: list[TermGroup]
     geometry = final.geometry(robot)
     payloads = (0.0,) + (PAYLOAD_FACTORS if {chosen.variable, other.variable} & set(LOAD_VARIABLES) else ())
     best: tuple[np.ndarray | None, float | None, float | None] = (None, None, None)
+    pool = candidate_pool(robot, seed)
     for factor in payloads:
         heavier = robot if factor == 0 else _with_payload(robot, factor * robot.moving_mass_kg)
-        aug = augment(heavier, geometry, final.length_mm, information, sigma2,
-                      lambda c: stack_phi(groups, c.at_recorded_state(ctx)) / scale[42:], block, corr,
-                      SEPARATED_CORRELATION, seed, geometry_scale=scale[:42])
+
+        def phi(c: EffectContext) -> np.ndarray:
+            return stack_phi(groups, c.at_recorded_state(ctx)) / scale[42:]
+
+        aug = augment(heavier, geometry, final.length_mm, information, sigma2, phi, block, corr,
+                      SEPARATED_CORRELATION, seed, geometry_scale=scale[:42],
+                      candidates=(pool, candidate_jacobians(heavier, geometry, pool, final.length_mm, phi)))
         after = float(aug.predicted_band_mm[-1]) if aug.predicted_band_mm.size else None
         best = (aug.poses, after, None if factor == 0 else factor * robot.moving_mass_kg)
         if aug.reached_target:

@@ -163,17 +163,25 @@ def noise_from_repeats(residuals: np.ndarray, groups: list[np.ndarray]) -> tuple
     return dev.T @ dev / dof, float(dof)
 
 
+def sphere_sources(rec: Recording, robot: Robot, cmm_sigma_mm: float | None) -> bool:
+    """Whether a sphere-centre noise source is available (then `sphere_noise_covariance` will be needed)."""
+    return cmm_sigma_mm is not None or robot.sphere_sigma_mm is not None or "sphere_fit_rms_mm" in rec.extra
+
+
 def noise_yardstick(rec: Recording, robot: Robot, residuals: np.ndarray, length_mm: float,
                     cmm_sigma_mm: float | None = None, pose_sigma: tuple[float, float] | None = None,
-                    session: np.ndarray | None = None) -> NoiseLevel:
+                    session: np.ndarray | None = None, unit_covariance: np.ndarray | None = None) -> NoiseLevel:
     """Every available noise estimate for the rows of rec, and the one to trust (see the module docstring).
 
     `residuals` [N, 6] are the geometric model's pose residuals of every row (residual metric), used for
-    repeats; `session` the rows' sessions (find_repeats).
+    repeats; `session` the rows' sessions (find_repeats); `unit_covariance` their `sphere_noise_covariance` at a
+    sphere sigma of 1 mm when it was already worked out (the covariance scales with sigma squared).
     """
     estimates: list[NoiseEstimate] = []
 
     def from_sigma(sigma: float, source: str, dof: float | None) -> NoiseEstimate:
+        if unit_covariance is not None:
+            return NoiseEstimate(source, sigma**2 * unit_covariance, sigma, dof)
         return NoiseEstimate(source, sphere_noise_covariance(robot, rec.meas, sigma, length_mm), sigma, dof)
 
     if cmm_sigma_mm is not None:

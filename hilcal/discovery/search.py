@@ -20,6 +20,7 @@ The rule (docs/diagnosis.md):
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 import structlog
@@ -54,7 +55,7 @@ from hilcal.discovery.fitting import (
 )
 from hilcal.discovery.generic_terms import generic_groups
 from hilcal.discovery.naming import named_effects
-from hilcal.discovery.noise import NoiseLevel, noise_yardstick
+from hilcal.discovery.noise import NoiseLevel, noise_yardstick, sphere_noise_covariance, sphere_sources
 from hilcal.discovery.physics import library_groups
 from hilcal.discovery.regression import cluster_robust_covariance
 from hilcal.discovery.result import CandidateResult, Diagnosis, SessionShift, Step
@@ -295,20 +296,27 @@ def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: 
     kwargs = {"alpha": alpha, "n_boot": n_boot, "seed": seed, "cmm_sigma_mm": cmm_sigma_mm, "max_steps": max_steps,
               "generic": generic, "pose_sigma": pose_sigma}
     ctx = EffectContext.from_recording(rec, robot)
+    unit = (sphere_noise_covariance(robot, rec.meas, 1.0, robot.characteristic_length_mm)
+            if sphere_sources(rec, robot, cmm_sigma_mm) else None)
+
+    def rows(keep: np.ndarray | None) -> dict[str, Any]:
+        """The per-row inputs worked out once on the whole recording, for its kept rows."""
+        return {"unit_covariance": unit if unit is None or keep is None else unit[keep]}
+
     described = {"seed": seed, "include_unconfirmed": include_unconfirmed}
-    searched = _searched(rec, robot, ctx, early=True, **kwargs)
+    searched = _searched(rec, robot, ctx, early=True, **kwargs, **rows(None))
     screened = searched.screened()
     if not screened.any:
         return _wired(_describe(searched, robot, **described), wiring)
     measure_rows = np.flatnonzero(rec.phase == "measure")
     leave = _left_out_rows(screened, measure_rows, rec.n)
-    again = _searched(rec.rows(~leave), robot, ctx.rows(~leave), **kwargs)
+    again = _searched(rec.rows(~leave), robot, ctx.rows(~leave), **kwargs, **rows(~leave))
     if searched.early and not _confirmed(again, screened, rec, ctx, measure_rows):
         log.info("early_screen_not_confirmed")
-        searched = _searched(rec, robot, ctx, **kwargs)
+        searched = _searched(rec, robot, ctx, **kwargs, **rows(None))
         screened = searched.screened()
         leave = _left_out_rows(screened, measure_rows, rec.n)
-        again = _searched(rec.rows(~leave), robot, ctx.rows(~leave), **kwargs)
+        again = _searched(rec.rows(~leave), robot, ctx.rows(~leave), **kwargs, **rows(~leave))
     return _wired(_with_rows_left_out(_describe(again, robot, stops_from=rec, **described), screened, searched, rec,
                                       measure_rows), wiring)
 
@@ -427,9 +435,11 @@ class _Searched:
 
 def _searched(rec: Recording, robot: Robot, ctx: EffectContext, *, alpha: float, n_boot: int, seed: int,
               cmm_sigma_mm: float | None, max_steps: int, generic: bool,
-              pose_sigma: tuple[float, float] | None, early: bool = False) -> _Searched:
+              pose_sigma: tuple[float, float] | None, early: bool = False,
+              unit_covariance: np.ndarray | None = None) -> _Searched:
     """Geometry, noise yardstick and forward selection on `rec` as given, with `ctx` its rows' context (computed on
-    the whole recording when `rec` is a subset of it); `early`: see `_select`."""
+    the whole recording when `rec` is a subset of it; so is `unit_covariance`, see `noise_yardstick`); `early`: see
+    `_select`."""
     p = Problem.of(rec, robot, ctx)
     library, untestable = library_groups(p.ctx, robot)
     candidates = library + (generic_groups(p.ctx) if generic else [])
@@ -437,7 +447,8 @@ def _searched(rec: Recording, robot: Robot, ctx: EffectContext, *, alpha: float,
     cv_geometry = model_state(p, geo, [])[0].cv_mm
     leg_res = leg_residuals(p, geo, [])
     residuals_all = pose_difference(rec.meas, predict(p, geo, [], np.ones(rec.n, dtype=bool)), p.length_mm)
-    noise = noise_yardstick(rec, robot, residuals_all, p.length_mm, cmm_sigma_mm, pose_sigma, p.ctx_all.session)
+    noise = noise_yardstick(rec, robot, residuals_all, p.length_mm, cmm_sigma_mm, pose_sigma, p.ctx_all.session,
+                            unit_covariance)
     p.shape_prior = (shape_scales(leg_res[p.measure]), None if noise.chosen is None else max(
         float(np.sqrt(np.mean(np.trace(noise.chosen.covariance[p.measure], axis1=1, axis2=2)) / 6.0)), 1e-9))
     sel = _select(p, candidates, alpha, n_boot, seed, max_steps, geo, early)
