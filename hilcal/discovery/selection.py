@@ -320,7 +320,10 @@ def assess(state: ModelState, groups: list[TermGroup], columns: list[np.ndarray]
     families = np.array([g.kind for g, _, _ in kept])
     adjusted = []
     for e_star, rss in zip(_null_sums(draws, Q_all, ranks, state.n_poses), draws.rss, strict=True):
-        f_star = (e_star / ranks[:, None]) / ((rss[None, :] - e_star) / (dof - ranks)[:, None])
+        # F* = (e / q) / ((rss - e) / (dof - q)), formed in place on the [groups, draws] array.
+        f_star = np.subtract(rss[None, :], e_star)
+        np.divide(e_star, f_star, out=f_star)
+        f_star *= ((dof - ranks) / ranks)[:, None]
         adjusted.append(_min_p_adjust(p_obs, f_star, ranks, dof, families))
 
     # Held-out residuals only where they can matter: a group that fails its test can never be chosen, so only
