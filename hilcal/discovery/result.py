@@ -268,7 +268,8 @@ class Diagnosis:
     wiring: Any = None
     """The leg-wiring check (hilcal.wiring.LegWiring): readings in another order or counting the wrong way."""
     left_out_mm: np.ndarray | None = field(default=None, repr=False)
-    """Per measure row: the length of the final model's left-out residual (mm), for the outlier screen."""
+    """Per measure row: the length of the final model's left-out residual (mm). (The outlier screen reads the selected
+    model's, before the final bounded fit: `hilcal.discovery.screen`.)"""
     zero_offsets_mm: np.ndarray | None = field(default=None, repr=False)
     """Per leg: how much it reads long (mm) at home with the calibrated geometry, joint frames removed."""
     excluded: tuple[dict[str, float], ...] = ()

@@ -14,7 +14,12 @@ The rule (docs/diagnosis.md):
    `unexplained`, never `none`.
 4. The final model is refitted with every library parameter inside its possible range and the generic shapes held
    to the size the data shows; it is exported as one consistent compensation set (`hilcal.discovery.corrections`).
-   The verify rows (never used for choosing) show what each step buys on held-out poses.
+   The verify rows (never used for choosing) show what each step buys on held-out poses; a step that makes them
+   worse (judged with any reported session shift removed) is not confirmed, and its group is left out of the
+   exported set (refitted without it) unless `include_unconfirmed`.
+5. Rows the model cannot speak for are left out and the search runs again (`hilcal.discovery.screen`): rows whose
+   history terms are unknown, and measurement outliers; the context is computed once on the whole recording, so
+   leaving rows out changes no other row's regressors.
 """
 
 from __future__ import annotations
