@@ -19,13 +19,14 @@ from typing import Any
 
 import numpy as np
 
-from hilcal.discovery.augmentation import augment
+from hilcal.discovery.augmentation import augment, candidate_jacobians, candidate_pool
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.selection import GroupTest, similar
 from hilcal.discovery.term_groups import LIBRARY, TermGroup, stack_phi
 from hilcal.identification import IdentificationResult, residual_function
 from hilcal.robot import Robot
 
+N_GEO = 42
 ALIAS_SIGNATURE = 0.8
 """Cosine of the fitted leg-length signatures above which two effects look alike on this recording."""
 ALIAS_GAIN = 0.9
@@ -173,11 +174,16 @@ def separation(robot: Robot, final: IdentificationResult, model: list[TermGroup]
     geometry = final.geometry(robot)
     payloads = (0.0,) + (PAYLOAD_FACTORS if {chosen.variable, other.variable} & set(LOAD_VARIABLES) else ())
     best: tuple[np.ndarray | None, float | None, float | None] = (None, None, None)
+    pool = candidate_pool(robot, seed)
     for factor in payloads:
         heavier = robot if factor == 0 else _with_payload(robot, factor * robot.moving_mass_kg)
-        aug = augment(heavier, geometry, final.length_mm, information, sigma2,
-                      lambda c: stack_phi(groups, c.at_recorded_state(ctx)) / scale[42:], block, corr,
-                      SEPARATED_CORRELATION, seed, geometry_scale=scale[:42])
+
+        def phi(c: EffectContext) -> np.ndarray:
+            return stack_phi(groups, c.at_recorded_state(ctx)) / scale[42:]
+
+        aug = augment(heavier, geometry, final.length_mm, information, sigma2, phi, block, corr,
+                      SEPARATED_CORRELATION, seed, geometry_scale=scale[:42],
+                      candidates=(pool, candidate_jacobians(heavier, geometry, pool, final.length_mm, phi)))
         after = float(aug.predicted_band_mm[-1]) if aug.predicted_band_mm.size else None
         best = (aug.poses, after, None if factor == 0 else factor * robot.moving_mass_kg)
         if aug.reached_target:
@@ -188,3 +194,45 @@ def separation(robot: Robot, final: IdentificationResult, model: list[TermGroup]
 def _with_payload(robot: Robot, payload_kg: float) -> Robot:
     mass = robot.spec.mass.model_copy(update={"moving_mass_kg": robot.moving_mass_kg + payload_kg})
     return replace(robot, spec=robot.spec.model_copy(update={"mass": mass}))
+
+
+def final_without(final: IdentificationResult, chosen: list[TermGroup], group: TermGroup) -> IdentificationResult:
+    """The final fit with one chosen group's parameters removed (to test it against another as an alias)."""
+    if group not in chosen:
+        return final
+    start = N_GEO + sum(g.n_params for g in chosen[:chosen.index(group)])
+    keep = np.r_[0:start, start + group.n_params:final.x.size]
+    return replace(final, x=final.x[keep], names=tuple(np.array(final.names)[keep]))
+
+
+def named_aliases(p: Any, chosen: list[TermGroup], chosen_tests: dict[str, GroupTest],
+                  alike: dict[str, tuple[GroupTest, ...]], evidence: dict[str, dict[str, float]],
+                  final: IdentificationResult, seed: int) -> tuple[Alias, ...]:
+    """Every named library effect's near-aliases, with their values and what would separate them.
+
+    `p` is the diagnosis' problem (`hilcal.discovery.fitting.Problem`); `alike` per chosen group the library groups
+    that looked like it when it was chosen, `evidence` their log evidence."""
+    out = []
+    chosen_keys = [c.key for c in chosen]
+    for g in chosen:
+        chosen_test = chosen_tests.get(g.key)
+        if g.kind != LIBRARY or chosen_test is None:
+            continue
+        group_evidence = evidence.get(g.key, {})
+        for t in alike.get(g.key, ()):
+            if t.group.key in chosen_keys and chosen_keys.index(t.group.key) < chosen_keys.index(g.key):
+                continue
+            model = [c for c in chosen if c.key != t.group.key]
+            now, poses, after, payload = separation(p.robot, final_without(final, chosen, t.group), model, g,
+                                                    t.group, p.mea.legs_mm, p.mea.meas, p.ctx, seed)
+            factor = None
+            if g.key in group_evidence and t.group.key in group_evidence:
+                factor = (group_evidence[g.key] - group_evidence[t.group.key]) / np.log(10.0)
+            cosine = similar(chosen_test, t)
+            out.append(Alias(
+                g.key, t.group.key, t.group.title, cosine, t.press_gain_mm / max(chosen_test.press_gain_mm, 1e-300),
+                factor, dict(zip(t.group.names, map(float, t.estimate), strict=True)),
+                dict(zip(t.group.names, map(float, t.std_errors), strict=True)), t.grades,
+                alias_why(g, t.group, p.ctx, cosine), now, poses, after, payload, t.group.key in chosen_keys,
+            ))
+    return tuple(out)

@@ -41,18 +41,28 @@ def candidate_jacobians(robot: Robot, geometry: Geometry, poses: np.ndarray, len
     return np.concatenate([D, effect], axis=2)
 
 
+def candidate_pool(robot: Robot, seed: int) -> np.ndarray:
+    """The seeded pool of feasible poses the augmentation picks from (the same for every term of one model)."""
+    return random_poses(robot, POOL_SIZE, np.random.default_rng(seed))
+
+
 def augment(robot: Robot, geometry: Geometry, length_mm: float, information: np.ndarray, sigma2: float,
             phi: Callable[[EffectContext], np.ndarray], block: np.ndarray, band_of: Callable[[np.ndarray], float],
-            target_band_mm: float, seed: int = 0, geometry_scale: np.ndarray | None = None) -> Augmentation:
+            target_band_mm: float, seed: int = 0, geometry_scale: np.ndarray | None = None,
+            candidates: tuple[np.ndarray, np.ndarray] | None = None) -> Augmentation:
     """Greedy Ds-optimal poses for the parameters `block` until `band_of(cov_block)` <= target (or the cap).
 
     `information` is J^T J of the recorded measure rows for the full parameter vector (geometry first),
     `sigma2` the residual variance, `phi` the effect regressors of the whole model. When the parameters were
     scaled (J / scale, so that units as different as mm and ppm invert well), `geometry_scale` divides the geometry
-    columns of the candidates the same way (and `phi` returns the scaled effect regressors).
+    columns of the candidates the same way (and `phi` returns the scaled effect regressors). `candidates`: the pool
+    (`candidate_pool(robot, seed)`) and its `candidate_jacobians` when several terms of one model are augmented.
     """
-    pool = random_poses(robot, POOL_SIZE, np.random.default_rng(seed))
-    Jc = candidate_jacobians(robot, geometry, pool, length_mm, phi)
+    if candidates is None:
+        pool = candidate_pool(robot, seed)
+        Jc = candidate_jacobians(robot, geometry, pool, length_mm, phi)
+    else:
+        pool, Jc = candidates[0], candidates[1].copy()
     if geometry_scale is not None:
         Jc[..., :42] /= geometry_scale
     p = information.shape[0]

@@ -52,25 +52,28 @@ def _joint_frames(directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(directions, e1)
 
 
+def joint_axes(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
+    """The two axes [6, 2, 3] per leg that `joint_angles` projects on: perpendicular to the leg's direction at the
+    home pose, in the base frame (base joints) and in the platform frame (platform joints)."""
+    geom = Geometry.nominal(robot)
+    R0, t0 = split_pose(robot.home)
+    _, _, u0 = leg_vectors(geom, R0, t0)
+    return tuple(np.stack(_joint_frames(d0), axis=1) for d0 in (u0, u0 @ R0))  # type: ignore[return-value]
+
+
 def joint_angles(robot: Robot, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Leg direction at the base and at the platform joint, as two small angles (rad) from the home direction.
 
     Returns (base [N, 6, 2], platform [N, 6, 2]). At the base the leg direction u is taken in the base frame;
     at the platform in the platform frame (R^T u). Each is projected on two axes perpendicular to its
-    direction at the home pose: what a spherical or universal joint turns through.
+    direction at the home pose (`joint_axes`): what a spherical or universal joint turns through.
     """
     geom = Geometry.nominal(robot)
     R, t = split_pose(np.asarray(poses, dtype=float))
     _, _, u = leg_vectors(geom, R, t)
-    R0, t0 = split_pose(robot.home)
-    _, _, u0 = leg_vectors(geom, R0, t0)
     v = np.einsum("nji,nkj->nki", R, u)
-    v0 = u0 @ R0
-    out = []
-    for d, d0 in ((u, u0), (v, v0)):
-        e1, e2 = _joint_frames(d0)
-        out.append(np.stack([np.einsum("nkj,kj->nk", d, e1), np.einsum("nkj,kj->nk", d, e2)], axis=-1))
-    return out[0], out[1]
+    return tuple(np.einsum("nkj,kaj->nka", d, axes)  # type: ignore[return-value]
+                 for d, axes in zip((u, v), joint_axes(robot), strict=True))
 
 
 def motion_history(legs_mm: np.ndarray, session: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -163,6 +166,10 @@ class EffectContext:
             value = getattr(self, f.name)
             values[f.name] = None if value is None else value[mask]
         return EffectContext(**values)
+
+    def unknown_history(self) -> np.ndarray:
+        """[N, 6] legs whose direction of approach is unknown (no recorded move since their session started)."""
+        return self.direction == 0
 
     def per_leg(self, values: np.ndarray) -> np.ndarray:
         """Broadcast a per-row quantity [N] to [N, 6]."""

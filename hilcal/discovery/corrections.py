@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -65,8 +65,13 @@ class Term:
     grid: np.ndarray | None = None
     correction_mm: np.ndarray | None = None
     recorded_range: tuple[float, float] = (0.0, 0.0)
+    """The variable's range over the recorded rows; for joint-angle terms the joint's tilt from its home direction,
+    sqrt(a1^2 + a2^2), in degrees."""
     angle_terms: tuple[tuple[str, float], ...] = ()
     """Joint-angle curvature: (product of angles, mm per rad^2) pairs."""
+    amplitude_mm: float | None = None
+    """Joint-angle terms: half the range of the correction over the recorded rows (a quadratic in two angles has
+    no one-variable range to take it from)."""
 
     def value(self, ctx: EffectContext) -> np.ndarray:
         """The correction (mm) this term adds to its leg's reported length at every row of ctx."""
@@ -90,7 +95,7 @@ class Term:
             return float(np.ptp(self.correction_mm) / 2.0)
         if self.coefficient_mm is not None:
             return float(abs(self.coefficient_mm) * (self.recorded_range[1] - self.recorded_range[0]) / 2.0)
-        return float("nan")
+        return 0.0 if self.amplitude_mm is None else float(self.amplitude_mm)
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {"effect": self.effect, "group": self.group, "leg": self.leg + 1,
@@ -101,6 +106,8 @@ class Term:
             out["table"] = {"x": self.grid.tolist(), "correction_mm": self.correction_mm.tolist()}
         if self.angle_terms:
             out["angle_terms_mm_per_rad2"] = dict(self.angle_terms)
+            out["recorded_range_unit"] = "deg of joint tilt"
+            out["amplitude_mm"] = self.size_mm
         return out
 
 
@@ -152,10 +159,13 @@ def _generic_terms(g: TermGroup, theta: np.ndarray, ctx: EffectContext) -> list[
         th = theta[g.leg_columns(leg)]
         assert g.curve is not None
         if g.variable in ("base_joint_angle", "platform_joint_angle"):
-            scale = np.max(np.abs(ctx.base_angle_rad if g.variable.startswith("base") else ctx.platform_angle_rad),
-                           axis=(0, 2))[leg]
-            out.append(Term("unexplained", g.key, leg, g.variable, angle_terms=tuple(
-                (k, float(c / scale**2)) for k, c in zip(("a1*a1", "a1*a2", "a2*a2"), th, strict=True))))
+            angles = ctx.base_angle_rad if g.variable.startswith("base") else ctx.platform_angle_rad
+            scale = np.max(np.abs(angles), axis=(0, 2))[leg]
+            tilt = np.degrees(np.linalg.norm(angles[:, leg, :], axis=1))
+            products = tuple((k, float(c / scale**2)) for k, c in zip(("a1*a1", "a1*a2", "a2*a2"), th, strict=True))
+            term = Term("unexplained", g.key, leg, g.variable,
+                        recorded_range=(float(np.min(tilt)), float(np.max(tilt))), angle_terms=products)
+            out.append(replace(term, amplitude_mm=float(np.ptp(term.value(ctx)) / 2.0)))
             continue
         if g.variable == "last_move":
             for name, d in (("last_move_mm_out", 1.0), ("last_move_mm_in", -1.0)):

@@ -35,9 +35,13 @@ def _um(value_mm: float) -> str:
     return f"{value_mm * 1000:.1f} µm"
 
 
-def _named_sentence(n: NamedEffect) -> str:
+UNCONFIRMED = "not confirmed on held-out poses"
+
+
+def _named_sentence(n: NamedEffect, unconfirmed: tuple[str, ...] = ()) -> str:
     kind = "Set-up fault" if n.grade == "fault" else "Missing physics"
-    return f"{kind} ({n.effect}, {n.title}): {n.sentence}"
+    mark = f" ({UNCONFIRMED})" if n.effect in unconfirmed else ""
+    return f"{kind} ({n.effect}, {n.title}){mark}: {n.sentence}"
 
 
 def _drift_words(terms: list[Any]) -> str:
@@ -63,8 +67,23 @@ def _drift_words(terms: list[Any]) -> str:
     return text
 
 
-def _shape_sentences(shapes: list[Shape], compensation: Any) -> list[str]:
-    """One sentence per generic group: where, how big over the recorded range, whether it is pinned down."""
+def _range_words(term: Any) -> str:
+    """' over the recorded LO-HI VARIABLE' of a term, or nothing when its range is empty or not finite."""
+    lo, hi = term.recorded_range
+    if not (np.isfinite(lo) and np.isfinite(hi)) or hi <= lo:
+        return ""
+    if term.angle_terms:
+        return f" over the recorded {lo:.3g}-{hi:.3g}° tilt of its {term.variable.replace('_', ' ')}"
+    return f" over the recorded {lo:.4g}-{hi:.4g} {term.variable}"
+
+
+def _shape_sentences(shapes: list[Shape], compensation: Any, unconfirmed: tuple[str, ...] = (),
+                     steps: tuple[Step, ...] | list[Step] = (), shifted: bool = False) -> list[str]:
+    """One sentence per generic group: where, how big over the recorded range, whether it is pinned down, whether
+    the held-out poses confirm it (the held-out figures of its step, with the session shift removed when one is
+    reported, as the verdict judges them)."""
+    judged = {s.key: (s.judged_before_mm, s.judged_mm) for s in steps
+              if s.judged_before_mm is not None and s.judged_mm is not None}
     out = []
     sizes = {} if compensation is None else {(t.group, t.leg): t for t in compensation.terms}
     for key in dict.fromkeys(s.group.key for s in shapes):
@@ -73,15 +92,19 @@ def _shape_sentences(shapes: list[Shape], compensation: Any) -> list[str]:
         parts = []
         for s in group_shapes:
             term = sizes.get((key, s.leg))
-            size = s.amplitude_mm if term is None else term.size_mm
-            where = "" if term is None else f" over the recorded {term.recorded_range[0]:.4g}-" \
-                                            f"{term.recorded_range[1]:.4g} {term.variable}"
+            size = s.amplitude_mm if term is None or not np.isfinite(term.size_mm) else term.size_mm
+            where = "" if term is None else _range_words(term)
             parts.append(f"leg {s.leg + 1} ±{_um(size)}{where}")
         text = f"Unexplained (no library effect describes it): {first.group.sentence} ({'; '.join(parts)})"
         text += _drift_words([sizes[(key, s.leg)] for s in group_shapes if (key, s.leg) in sizes])
-        if first.verify_before_mm is not None and first.verify_after_mm is not None:
+        if key in judged:
+            text += (f"; modelling it takes the held-out verify RMS{' (session shift removed)' if shifted else ''} "
+                     f"from {judged[key][0]:.4f} to {judged[key][1]:.4f} mm")
+        elif first.verify_before_mm is not None and first.verify_after_mm is not None:
             text += (f"; modelling it takes the held-out verify RMS from {first.verify_before_mm:.4f} to "
                      f"{first.verify_after_mm:.4f} mm")
+        if key in unconfirmed:
+            text += f"; {UNCONFIRMED} (see below)"
         loose = [s for s in group_shapes if not s.pinned]
         if loose:
             text += f"; not pinned down on leg(s) {', '.join(str(s.leg + 1) for s in loose)}: {loose[0].why_not_pinned}"
@@ -125,14 +148,33 @@ def _alias_sentence(a: Any) -> str:
     return text + "."
 
 
-def summary_sentences(named: tuple[NamedEffect, ...], shapes: list[Shape], aliases: tuple[Any, ...],
-                      shift: SessionShift | None, stops: tuple[EndStop, ...], not_converged: tuple[str, ...],
-                      effects: list[str], ratio: NoiseComparison | None, noise: NoiseLevel,
-                      compensation: Any = None) -> list[str]:
+def _unconfirmed_sentence(a: Answer) -> str | None:
+    """The steps whose held-out figure got worse, and what happens to their correction."""
+    v = a.verdict
+    if v is None or not v.unconfirmed:
+        return None
+    judged = " (judged with the session shift removed)" if v.shift_removed else ""
+    parts = [f"step {s.index} ({s.key}) takes the held-out verify RMS from {s.judged_before_mm:.4f} to "
+             f"{s.judged_mm:.4f} mm" for s in a.steps if s.key in v.unconfirmed and s.confirmed is False
+             and s.judged_mm is not None and s.judged_before_mm is not None]
+    text = f"Not confirmed on held-out poses: {'; '.join(parts)}{judged}. The tests chose it on the measure rows, "
+    if v.included:
+        return text + "and its correction is in the compensation set as asked (--include-unconfirmed)."
+    after = "" if v.loadable_after is None else (
+        f"; the set's model gives {v.loadable_after.position_mm.rms:.4f} mm on the verify poses")
+    return (text + "but the held-out poses do not bear it out: its correction is left out of the compensation set, "
+            f"whose geometry is refitted without it{after} (--include-unconfirmed puts it back).")
+
+
+def summary_sentences(a: Answer) -> list[str]:
     """The opening of the answer: one sentence per finding."""
-    out = [_named_sentence(n) for n in named]
-    out += _shape_sentences(list(shapes), compensation)
-    out += [_alias_sentence(a) for a in aliases]
+    named, shapes, aliases, shift, stops = a.named, a.shapes, a.aliases, a.shift, a.stops
+    not_converged, effects, ratio, noise = a.not_converged, a.effects, a.ratio, a.noise
+    unconfirmed = () if a.verdict is None else a.verdict.unconfirmed
+    out = [_named_sentence(n, tuple(g.effect for g in a.chosen if g.key in unconfirmed)) for n in named]
+    out += _shape_sentences(list(shapes), a.compensation, unconfirmed, a.steps,
+                            a.verdict is not None and a.verdict.shift_removed)
+    out += [_alias_sentence(x) for x in aliases]
     if shift is not None and shift.legs:
         moved = ", ".join(f"leg {i} {shift.shift_mm[i - 1] * 1000:+.1f} ± {shift.std_error_mm[i - 1] * 1000:.1f} µm"
                           for i in shift.legs)
@@ -156,6 +198,9 @@ def summary_sentences(named: tuple[NamedEffect, ...], shapes: list[Shape], alias
         else:
             out.append(f"No missing physics is significant, but the residual is {ratio.ratio_final:.2f}x the noise: "
                        "small structure below the detection limit, or more noise than the source says.")
+    said = _unconfirmed_sentence(a)
+    if said:
+        out.append(said)
     return out
 
 
@@ -195,22 +240,39 @@ class Answer:
     stops: tuple[EndStop, ...]
     not_converged: tuple[str, ...]
     compensation: Any
+    """The final model's terms (hilcal.discovery.corrections.CompensationSet), unconfirmed groups included."""
+    verdict: Verdict | None = None
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What the held-out poses say of the steps: the groups they do not confirm and what the export does with them."""
+
+    unconfirmed: tuple[str, ...]
+    included: bool
+    """--include-unconfirmed: their corrections stay in the compensation set."""
+    loadable_after: AccuracySummary | None
+    shift_removed: bool
 
 
 def compose(a: Answer) -> str:
     """The explanation printed by `hilcal diagnose` and stored in the report: the summary, then the evidence."""
-    parts = summary_sentences(a.named, a.shapes, a.aliases, a.shift, a.stops, a.not_converged, a.effects, a.ratio,
-                              a.noise, a.compensation)
-    return " ".join([*parts, evidence(a)])
+    return " ".join([*summary_sentences(a), evidence(a)])
 
 
 def evidence(a: Answer) -> str:
     """The evidence behind the summary: steps, held-out figures, the noise comparison, what was rejected."""
     parts: list[str] = []
+    shifted = a.verdict is not None and a.verdict.shift_removed
     for s in a.steps:
         removed = f" (made {', '.join(s.removed)} redundant)" if s.removed else ""
+        held = ""
+        if s.judged_mm is not None and s.judged_before_mm is not None:
+            held = (f"; held-out verify RMS{' (session shift removed)' if shifted else ''} {s.judged_before_mm:.4f} "
+                    f"-> {s.judged_mm:.4f} mm{'' if s.confirmed else ': ' + UNCONFIRMED}")
         parts.append(f"Step {s.index} added {s.key}{removed}: F = {s.f_statistic:.1f}, family-wise p = "
-                     f"{s.p_value:.3g}; leave-one-pose-out residual {_um(s.cv_before_mm)} -> {_um(s.cv_rms_mm)}.")
+                     f"{s.p_value:.3g}; leave-one-pose-out residual {_um(s.cv_before_mm)} -> {_um(s.cv_rms_mm)}"
+                     f"{held}.")
     if a.steps and a.before is not None and a.after is not None:
         parts.append(f"Held-out verify poses: RMS position {a.before.position_mm.rms:.4f} mm (geometry only) -> "
                      f"{a.after.position_mm.rms:.4f} mm (with {', '.join(a.effects)}).")

@@ -7,7 +7,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from scipy.linalg import block_diag
 from scipy.special import stdtr
 
 from hilcal.discovery.context import EffectContext
@@ -61,22 +60,36 @@ def _leg_map(robot: Robot, poses: np.ndarray, length_mm: float) -> np.ndarray:
     return G
 
 
+def _blocks(blocks: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """The block-diagonal matrix of per-pose 6 x 6 `blocks` [N, 6, 6] times A [6 N, k]."""
+    n = blocks.shape[0]
+    return np.einsum("nij,njk->nik", blocks, A.reshape(n, 6, -1)).reshape(A.shape)
+
+
 def _ratios(r: np.ndarray, J: np.ndarray, sigma: np.ndarray, leg_map: np.ndarray) -> tuple[float, np.ndarray, float]:
-    """Observed / expected residual (total and per leg) under the noise covariance, for an LS fit with Jacobian J."""
+    """Observed / expected residual (total and per leg) under the noise covariance, for an LS fit with Jacobian J.
+
+    With H = Q Q' the fit's projection and S the noise covariance (block diagonal, `sigma` [N, 6, 6]), the residual's
+    covariance is C = (I - H) S (I - H): tr C = tr S - tr(Q'SQ), and with G the per-pose map to leg lengths
+    (`leg_map`), diag(G C G') = diag(G S G') - 2 rowsum(GQ * GSQ) + rowsum(GQ (Q'SQ) * GQ), formed on the thin
+    Q rather than on m x m matrices."""
     m = r.size
-    IH = np.eye(m) - (Q := orth(J)) @ Q.T
-    C = IH @ sigma @ IH
-    G = block_diag(*leg_map)
-    rho = G @ r
-    C_rho = np.diag(G @ C @ G.T)
+    Q = orth(J)
+    SQ = _blocks(sigma, Q)
+    M = Q.T @ SQ
+    GQ, GSQ = _blocks(leg_map, Q), _blocks(leg_map, SQ)
+    GSG = np.einsum("nij,njk,nik->ni", leg_map, sigma, leg_map).reshape(-1)
+    C_rho = GSG - 2.0 * np.sum(GQ * GSQ, axis=1) + np.sum((GQ @ M) * GQ, axis=1)
+    trace = float(np.trace(sigma, axis1=1, axis2=2).sum() - np.trace(M))
+    rho = _blocks(leg_map, r[:, None])[:, 0]
     per_leg = np.array([np.sqrt(np.sum(rho[i::6] ** 2) / np.sum(C_rho[i::6])) for i in range(6)])
-    return float(np.sqrt(r @ r / np.trace(C))), per_leg, float(np.sqrt(np.trace(C) / m))
+    return float(np.sqrt(r @ r / trace)), per_leg, float(np.sqrt(trace / m))
 
 
 def noise_comparison(robot: Robot, poses: np.ndarray, covariance: np.ndarray, geometry: tuple[np.ndarray, np.ndarray],
                      final: tuple[np.ndarray, np.ndarray], length_mm: float) -> NoiseComparison:
     """Residual RMS of the geometry-only and the final fit against what the noise alone would leave."""
-    sigma = block_diag(*covariance)
+    sigma = np.asarray(covariance, dtype=float)
     leg_map = _leg_map(robot, poses, length_mm)
     ratio_geo, legs_geo, _ = _ratios(*geometry, sigma, leg_map)
     ratio_fin, legs_fin, expected = _ratios(*final, sigma, leg_map)
@@ -95,18 +108,21 @@ def _holm(p: np.ndarray) -> np.ndarray:
 
 
 def session_shift(ctx: EffectContext, measure: np.ndarray, leg_res: np.ndarray, rec: Recording,
-                  predict: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> SessionShift | None:
+                  predict: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                  unknown: np.ndarray | None = None) -> SessionShift | None:
     """Per-leg mean residual of verify rows in sessions without measure rows (t test per leg, Holm over legs).
 
     Such a step is itself a finding: the machine was re-homed or a transducer's zero moved between the
     sessions. It is estimated on the verify rows themselves, so the corrected verify error is not held out.
-    `predict(rows, leg_offsets_mm)` gives the model's poses for those rows with extra leg offsets.
+    `predict(rows, leg_offsets_mm)` gives the model's poses for those rows with extra leg offsets. Rows in
+    `unknown` (a term of the model cannot apply there: its history is unknown) do not enter the estimate.
     """
     later = ~measure & ~np.isin(ctx.session, np.unique(ctx.session[measure]))
-    n = int(later.sum())
+    known = later if unknown is None else later & ~unknown
+    n = int(known.sum())
     if n < 3:
         return None
-    res = leg_res[later]
+    res = leg_res[known]
     mean = res.mean(axis=0)
     se = res.std(axis=0, ddof=1) / np.sqrt(n)
     p = _holm(2 * stdtr(n - 1, -np.abs(mean) / np.maximum(se, 1e-300)))

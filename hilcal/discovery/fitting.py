@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+from collections.abc import Callable
 
 import numpy as np
 import structlog
-from scipy.optimize import least_squares
+from scipy.optimize import lsq_linear
 
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.noise import find_repeats
@@ -22,7 +23,7 @@ from hilcal.discovery.regression import pooled_whitener, whiten
 from hilcal.discovery.selection import ModelState
 from hilcal.discovery.term_groups import GENERIC, TermGroup
 from hilcal.error_models import GEOMETRIC_42, implicit_residuals
-from hilcal.identification import IdentificationResult, identify, residual_function
+from hilcal.identification import IdentificationResult, residual_function
 from hilcal.kinematics import KinematicsError, forward_kinematics
 from hilcal.metrics import AccuracySummary
 from hilcal.recording import Recording
@@ -32,7 +33,6 @@ log = structlog.get_logger(__name__)
 
 N_GEO = 42
 DL0_COLUMNS = [7 * i + 6 for i in range(6)]
-MAX_EVALUATIONS = 200
 
 
 @dataclasses.dataclass
@@ -48,16 +48,25 @@ class Problem:
     ver: Recording
     clusters: np.ndarray
     phi_cache: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    shape_prior: tuple[np.ndarray, float | None] | None = None
+    """(per-leg scale in mm, noise per residual component in mm or None) of the generic shapes' Gaussian prior
+    (`prior_rows`), once the geometry-only fit has set it: every fit with a generic group then holds the shapes to
+    the size the data shows. Without a noise level, each fit takes its start's residual RMS."""
     not_converged: list[str] = dataclasses.field(default_factory=list)
     """Fits that stopped before converging (named in the answer)."""
 
     @classmethod
-    def of(cls, rec: Recording, robot: Robot) -> Problem:
+    def of(cls, rec: Recording, robot: Robot, ctx_all: EffectContext | None = None) -> Problem:
+        """`ctx_all`: the rows' context when they are a subset of a longer recording (computed on the whole
+        recording, so leaving rows out changes no other row's history, session or time); else from `rec`."""
         measure = rec.phase == "measure"
-        ctx_all = EffectContext.from_recording(rec, robot)
+        if ctx_all is None:
+            ctx_all = EffectContext.from_recording(rec, robot)
+        if ctx_all.n != rec.n:
+            raise ValueError(f"the context has {ctx_all.n} rows, the recording {rec.n}")
         mea = rec.select("measure")
         labels = np.arange(mea.n)
-        for group in find_repeats(mea):
+        for group in find_repeats(mea, ctx_all.session[measure]):
             labels[group] = group[0]
         return cls(robot, rec, measure, ctx_all, ctx_all.rows(measure), mea, rec.select("verify"), labels)
 
@@ -86,26 +95,115 @@ def _start(groups: list[TermGroup], start: IdentificationResult | None) -> np.nd
     return np.array([values.get(n, 0.0) for n in GEOMETRIC_42.names + names_of(groups)])
 
 
+GN_ITERATIONS = 30
+GN_TOLERANCE = 1e-13
+"""Gauss-Newton stops when a full step would lower the sum of squares by less than this fraction of it."""
+RCOND = 1e-5
+"""Singular values below this fraction of the largest (column-scaled Jacobian) are treated as zero: directions the
+data cannot see get no step (minimum-norm steps), so a fit never drifts along them."""
+
+
+def gauss_newton(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0: np.ndarray,
+                 max_iter: int | None = None, bounds: tuple[np.ndarray, np.ndarray] | None = None,
+                 ) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
+    """Least squares by Gauss-Newton with minimum-norm steps on the column-scaled Jacobian and step shortening.
+
+    The diagnosis' models are linear in every effect parameter and nearly linear in the small geometric errors,
+    so from a warm start a few steps reach the minimum; a Levenberg-Marquardt search with a trust region crawled for
+    hundreds of evaluations along directions the poses hardly see (benchmarks/bench_diagnose.py). With `bounds`
+    (x0 inside them), a step that would leave them is the bounded linear least-squares step instead.
+    Returns (x, residuals, evaluations, converged, message)."""
+    max_iter = GN_ITERATIONS if max_iter is None else max_iter
+    x = np.asarray(x0, dtype=float).copy()
+    r, J = fun(x)
+    cost = float(r @ r)
+    evaluations = 1
+    for _ in range(max_iter):
+        c = np.sqrt(np.mean(J**2, axis=0))
+        c = np.where(c > 0, c, 1.0)
+        d = np.linalg.lstsq(J / c, -r, rcond=RCOND)[0] / c
+        if bounds is not None and np.any((x + d < bounds[0]) | (x + d > bounds[1])):
+            d = lsq_linear(J / c, -r, bounds=((bounds[0] - x) * c, (bounds[1] - x) * c), method="bvls").x / c
+        predicted = float(np.sum((J @ d) ** 2))
+        if predicted <= GN_TOLERANCE * cost:
+            return x, r, evaluations, True, "Gauss-Newton: the next step gains nothing"
+        t = 1.0
+        while True:
+            try:
+                r_new, J_new = fun(x + t * d)
+                new_cost = float(r_new @ r_new)
+            except KinematicsError:
+                new_cost = np.inf
+            evaluations += 1
+            if new_cost <= cost:
+                break
+            t *= 0.25
+            if t < 1e-6:
+                return x, r, evaluations, True, "Gauss-Newton: no step lowers the sum of squares"
+        x, r, J, cost = x + t * d, r_new, J_new, new_cost
+    return x, r, evaluations, False, f"Gauss-Newton stopped after {max_iter} steps"
+
+
+def prior_rows(p: Problem, groups: list[TermGroup], shape_scale_mm: np.ndarray, noise_mm: float) -> np.ndarray:
+    """Ridge rows [6 N, 42 + q] of the generic shapes' Gaussian prior: each shape's correction at every recorded row
+    and leg, weighted by noise / scale (a prior of `shape_scale_mm` per leg); no rows without a generic group."""
+    size = N_GEO + sum(g.n_params for g in groups)
+    generic = np.zeros(size, dtype=bool)
+    k = N_GEO
+    for g in groups:
+        generic[k:k + g.n_params] = g.kind == GENERIC
+        k += g.n_params
+    if not generic.any():
+        return np.zeros((0, size))
+    phi = p.phi_of(groups)
+    assert phi is not None
+    weight = noise_mm / np.maximum(np.asarray(shape_scale_mm, dtype=float), max(noise_mm, 1e-9))
+    P = np.zeros((phi.shape[0] * 6, size))
+    P[:, generic] = (weight[None, :, None] * phi[:, :, generic[N_GEO:]]).reshape(-1, int(generic.sum()))
+    return P
+
+
 def fit_model(p: Problem, groups: list[TermGroup], start: IdentificationResult | None = None,
               label: str = "") -> IdentificationResult:
-    """Least squares of geometry + groups on the measure rows, warm-started from `start` when given."""
-    phi = p.phi_of(groups)
-    kwargs = {"estimator": "ls", "extra_regressors": phi, "extra_names": names_of(groups),
-              "max_iter": MAX_EVALUATIONS}
-    fit = None
-    if start is not None:
+    """Least squares of geometry + groups on the measure rows (Gauss-Newton), warm-started from `start` when
+    given, else from the nominal geometry; generic shapes are held by the problem's shape prior when it is set
+    (a shape and the geometry can otherwise trade against each other far along a valley the poses hardly see)."""
+    names = GEOMETRIC_42.names + names_of(groups)
+    data = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
+    P = np.zeros((0, len(names)))
+    if p.shape_prior is not None:
+        scale, noise = p.shape_prior
+        if noise is None:
+            noise = start.rms_residual if start is not None else float(np.min(scale))
+        P = prior_rows(p, groups, scale, noise)
+
+    def fun(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r, J = data(x)
+        return (np.concatenate([r, P @ x]), np.concatenate([J, P])) if P.size else (r, J)
+
+    x0 = _start(groups, start)
+    result = None
+    if x0 is not None:
         try:
-            fit = identify(p.robot, p.mea.legs_mm, p.mea.meas, x0=_start(groups, start), **kwargs)
+            result = gauss_newton(fun, x0)
         except KinematicsError:
-            fit = None
-    if fit is None or not fit.converged:
-        fit = identify(p.robot, p.mea.legs_mm, p.mea.meas, **kwargs)
-    if not fit.converged:
+            result = None
+    if result is None or not result[3]:
+        result = gauss_newton(fun, np.zeros(len(names)))
+    x, r, evaluations, converged, message = result
+    r = r[:6 * p.mea.n]
+    if not converged:
         name = label or ("geometry" if not groups else "geometry + " + ", ".join(g.key for g in groups))
         if name not in p.not_converged:
             p.not_converged.append(name)
-        log.warning("fit_not_converged", model=name, evaluations=fit.n_iterations, message=fit.message)
-    return fit
+        log.warning("fit_not_converged", model=name, evaluations=evaluations, message=message)
+    rms = float(np.sqrt(np.mean(r**2)))
+    return IdentificationResult(
+        x=x, names=names, model=GEOMETRIC_42.key, estimator="ls", formulation="forward", method="gauss-newton",
+        residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))), rms_residual=rms,
+        sigma=float(np.sqrt(r @ r / max(r.size - len(names), 1))), std_errors=None, covariance=None,
+        rank=len(names), n_iterations=evaluations, converged=converged, message=message, length_mm=p.length_mm,
+    )
 
 
 def _bounds(groups: list[TermGroup], size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -137,38 +235,50 @@ def final_fit(p: Problem, groups: list[TermGroup], start: IdentificationResult, 
     weighted by noise / scale), so the geometry takes what it can absorb and a shape is no larger than the data
     shows."""
     fit = start
-    phi = p.phi_of(groups)
-    generic = np.zeros(fit.x.size, dtype=bool)
-    k = N_GEO
-    for g in groups:
-        generic[k:k + g.n_params] = g.kind == GENERIC
-        k += g.n_params
     lo, hi = _bounds(groups, fit.x.size)
     inside = bool(np.all((fit.x >= lo) & (fit.x <= hi)))
-    if inside and not generic.any():
+    P = prior_rows(p, groups, shape_scale_mm, noise_mm)
+    if inside and not P.size:
         return fit
-    fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, phi)
-    weight = noise_mm / np.maximum(np.asarray(shape_scale_mm, dtype=float), max(noise_mm, 1e-9))
-    P = np.zeros((0, fit.x.size))
-    if generic.any():
-        assert phi is not None
-        P = np.zeros((phi.shape[0] * 6, fit.x.size))
-        P[:, generic] = (weight[None, :, None] * phi[:, :, generic[N_GEO:]]).reshape(-1, int(generic.sum()))
+    fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
 
     def residuals(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        r, J = fun(x)
+        try:
+            r, J = fun(x)
+        except KinematicsError:
+            # A trial step so far off that some poses have no forward kinematics: it is shortened (gauss_newton),
+            # not the end of the diagnosis.
+            r, J = np.full(6 * p.mea.n, np.inf), np.zeros((6 * p.mea.n, x.size))
         return np.concatenate([r, P @ x]), np.concatenate([J, P])
 
     span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
-    x0 = np.clip(fit.x, lo + 1e-9 * span, hi - 1e-9 * span)
-    sol = least_squares(lambda x: residuals(x)[0], x0, jac=lambda x: residuals(x)[1], bounds=(lo, hi),
-                        method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=MAX_EVALUATIONS)
-    if sol.status <= 0:
+    margin_lo, margin_hi = lo + 1e-9 * span, hi - 1e-9 * span
+    x0 = fit.x if inside else _inside_start(residuals, fit.x, margin_lo, margin_hi)
+    x0 = np.clip(x0, margin_lo, margin_hi)
+    if not np.all(np.isfinite(residuals(x0)[0])):
         p.not_converged.append("final model (bounded, shapes held to the data)")
-    r = fun(sol.x)[0]
-    return dataclasses.replace(fit, x=sol.x, residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))),
-                               rms_residual=float(np.sqrt(np.mean(r**2))), converged=bool(sol.status > 0),
-                               message=f"final refit: {sol.message}")
+        return fit
+    x, _, _, converged, message = gauss_newton(residuals, x0, bounds=(lo, hi))
+    if not converged:
+        p.not_converged.append("final model (bounded, shapes held to the data)")
+    r = fun(x)[0]
+    return dataclasses.replace(fit, x=x, residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))),
+                               rms_residual=float(np.sqrt(np.mean(r**2))), converged=converged,
+                               message=f"final refit: {message}")
+
+
+def _inside_start(residuals: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x: np.ndarray, lo: np.ndarray,
+                  hi: np.ndarray) -> np.ndarray:
+    """A start inside the bounds for a fit whose parameters left them: the bounded linear least-squares step from x.
+
+    A fit outside the possible range usually drifted along a direction the data cannot see (a stroke spline and a
+    scale on the same leg trade against each other); clipping alone would then move the legs by the drifted
+    amount, far from any pose. The linearised step moves the trading parameters together, back inside."""
+    r, J = residuals(x)
+    scale = np.linalg.norm(J, axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    step = lsq_linear(J / scale, -r, bounds=((lo - x) * scale, (hi - x) * scale), method="bvls")
+    return x + step.x / scale
 
 
 def predict(p: Problem, fit: IdentificationResult, groups: list[TermGroup], rows: np.ndarray,
@@ -186,6 +296,39 @@ def verify_accuracy(p: Problem, fit: IdentificationResult, groups: list[TermGrou
     if not rows.any():
         return None
     return AccuracySummary.of(p.rec.meas[rows], predict(p, fit, groups, rows))
+
+
+def later_verify(p: Problem) -> np.ndarray:
+    """Verify rows in sessions without measure rows (where a re-homing between sessions shows)."""
+    return ~p.measure & ~np.isin(p.ctx_all.session, np.unique(p.ctx_all.session[p.measure]))
+
+
+def unknown_terms(p: Problem, groups: list[TermGroup]) -> np.ndarray:
+    """[N] rows (all phases) where a term of these groups cannot apply: its history is unknown there."""
+    out = np.zeros(p.rec.n, dtype=bool)
+    for g in groups:
+        if g.history:
+            out |= g.unknown_rows(p.ctx_all).any(axis=1)
+    return out
+
+
+def judged_verify_mm(p: Problem, fit: IdentificationResult, groups: list[TermGroup],
+                     shift_legs: tuple[int, ...] = ()) -> float | None:
+    """The held-out verify RMS position error (mm) of a model with the session shift of `shift_legs` (1-based legs
+    the diagnosis reports a shift on) removed: each leg's mean residual over the later verify session (rows whose
+    terms are known), estimated for this model as `hilcal.discovery.findings.session_shift` does. Without a reported
+    shift: the plain figure."""
+    verify = ~p.measure
+    if not verify.any():
+        return None
+    offsets: np.ndarray | float = 0.0
+    later = later_verify(p)
+    known = later & ~unknown_terms(p, groups)
+    if shift_legs and known.sum() >= 3:
+        mean = leg_residuals(p, fit, groups)[known].mean(axis=0)
+        on = np.isin(np.arange(1, 7), shift_legs)
+        offsets = np.where(later[verify][:, None] & on[None, :], mean[None, :], 0.0)
+    return AccuracySummary.of(p.rec.meas[verify], predict(p, fit, groups, verify, offsets)).position_mm.rms
 
 
 def leg_residuals(p: Problem, fit: IdentificationResult, groups: list[TermGroup]) -> np.ndarray:

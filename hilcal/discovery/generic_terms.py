@@ -223,7 +223,7 @@ def _last_move_group(leg: int, fit: EffectContext) -> list[TermGroup]:
         f"leg {leg + 1}'s length error depends on the direction and the size of its last move (hysteresis beyond "
         "constant backlash)", "last_move", "direction, direction x log size", leg, 2, basis, curve,
         ["move_direction_mm", "move_direction_x_logsize_mm"], curve_range=(float(np.min(size)), float(np.max(size))),
-        unit="mm",
+        unit="mm", history=True,
     )]
 
 

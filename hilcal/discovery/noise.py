@@ -128,9 +128,11 @@ def sigma_from_sphere_fit(rms_mm: np.ndarray, robot: Robot) -> tuple[float, floa
     return float(np.sqrt(np.mean(values**2) / factor)), float(dof)
 
 
-def find_repeats(rec: Recording) -> list[np.ndarray]:
-    """Groups (>= 2 rows, one session) of rows measured at the same pose: same commanded pose, else same legs."""
-    session = detect_sessions(rec.time_s)
+def find_repeats(rec: Recording, session: np.ndarray | None = None) -> list[np.ndarray]:
+    """Groups (>= 2 rows, one session) of rows measured at the same pose: same commanded pose, else same legs.
+
+    `session`: the rows' sessions when they are a subset of a longer recording (else from their clock)."""
+    session = detect_sessions(rec.time_s) if session is None else np.asarray(session)
     has_cmd = np.all(np.isfinite(rec.cmd), axis=1)
     unused = np.ones(rec.n, dtype=bool)
     groups = []
@@ -161,16 +163,25 @@ def noise_from_repeats(residuals: np.ndarray, groups: list[np.ndarray]) -> tuple
     return dev.T @ dev / dof, float(dof)
 
 
+def sphere_sources(rec: Recording, robot: Robot, cmm_sigma_mm: float | None) -> bool:
+    """Whether a sphere-centre noise source is available (then `sphere_noise_covariance` will be needed)."""
+    return cmm_sigma_mm is not None or robot.sphere_sigma_mm is not None or "sphere_fit_rms_mm" in rec.extra
+
+
 def noise_yardstick(rec: Recording, robot: Robot, residuals: np.ndarray, length_mm: float,
-                    cmm_sigma_mm: float | None = None, pose_sigma: tuple[float, float] | None = None) -> NoiseLevel:
+                    cmm_sigma_mm: float | None = None, pose_sigma: tuple[float, float] | None = None,
+                    session: np.ndarray | None = None, unit_covariance: np.ndarray | None = None) -> NoiseLevel:
     """Every available noise estimate for the rows of rec, and the one to trust (see the module docstring).
 
     `residuals` [N, 6] are the geometric model's pose residuals of every row (residual metric), used for
-    repeats.
+    repeats; `session` the rows' sessions (find_repeats); `unit_covariance` their `sphere_noise_covariance` at a
+    sphere sigma of 1 mm when it was already worked out (the covariance scales with sigma squared).
     """
     estimates: list[NoiseEstimate] = []
 
     def from_sigma(sigma: float, source: str, dof: float | None) -> NoiseEstimate:
+        if unit_covariance is not None:
+            return NoiseEstimate(source, sigma**2 * unit_covariance, sigma, dof)
         return NoiseEstimate(source, sphere_noise_covariance(robot, rec.meas, sigma, length_mm), sigma, dof)
 
     if cmm_sigma_mm is not None:
@@ -187,7 +198,7 @@ def noise_yardstick(rec: Recording, robot: Robot, residuals: np.ndarray, length_
         sigma, dof = sigma_from_sphere_fit(column, robot)
         if sigma > 0:
             estimates.append(from_sigma(sigma, "sphere_fit_rms_mm column", dof))
-    groups = find_repeats(rec)
+    groups = find_repeats(rec, session)
     repeats = noise_from_repeats(residuals, groups)
     if repeats is not None:
         cov, dof = repeats

@@ -111,6 +111,8 @@ class Candidate:
     """Actuator kinds whose legs can have this effect."""
     same_signature_as: str | None = None
     """Another candidate with the same regressor (on a machine of unknown kind only one of them is tested)."""
+    history: bool = False
+    """The regressor depends on the motion history (unknown at a session's first row)."""
 
     def parameter_names(self) -> tuple[str, ...]:
         if self.per_leg:
@@ -128,7 +130,7 @@ class Candidate:
         return TermGroup(
             key=self.name, kind=LIBRARY, effect=self.name, title=self.title_for(scales.kind), names=names,
             phi=self.regressor, physical_range=self.grade(scales).range_for(len(names)), sentence=self.sentence,
-            variable=self.driver,
+            variable=self.driver, history=self.history,
         )
 
 
@@ -250,7 +252,7 @@ CANDIDATES: tuple[Candidate, ...] = (
         "the leg length depends on the direction from which each leg approached the pose (play in the "
         "joints or the transducer coupling)",
         "direction of last motion", lambda ctx: per_leg_diagonal(0.5 * ctx.direction), _backlash_grade,
-        applicable=_backlash_applicable,
+        applicable=_backlash_applicable, history=True,
     ),
     Candidate(
         "oil_column_compliance", "hydraulic oil-column compliance (grows with stroke)", "um_per_kN_m",

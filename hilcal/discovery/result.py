@@ -44,6 +44,17 @@ class Step:
     verify: AccuracySummary | None
     removed: tuple[str, ...] = ()
     """Groups chosen earlier that this step made redundant (backward elimination)."""
+    judged_before_mm: float | None = None
+    judged_mm: float | None = None
+    """Held-out verify RMS position error (mm) before and after this step, with any reported session shift removed
+    (`hilcal.discovery.fitting.judged_verify_mm`): what confirms the step on held-out poses or not."""
+
+    @property
+    def confirmed(self) -> bool | None:
+        """Whether the held-out figure did not get worse with this step (None without verify rows)."""
+        if self.judged_mm is None or self.judged_before_mm is None:
+            return None
+        return self.judged_mm <= self.judged_before_mm
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -52,6 +63,8 @@ class Step:
             "p_wild_bootstrap": _finite(self.p_wild), "p_gaussian": _finite(self.p_gauss),
             "cv_rms_before_mm": _finite(self.cv_before_mm), "cv_rms_mm": _finite(self.cv_rms_mm),
             "verify_rms_position_mm": None if self.verify is None else self.verify.position_mm.rms,
+            "verify_judged_before_mm": self.judged_before_mm, "verify_judged_mm": self.judged_mm,
+            "confirmed_on_held_out": self.confirmed,
             "removed": list(self.removed),
         }
 
@@ -255,11 +268,21 @@ class Diagnosis:
     wiring: Any = None
     """The leg-wiring check (hilcal.wiring.LegWiring): readings in another order or counting the wrong way."""
     left_out_mm: np.ndarray | None = field(default=None, repr=False)
-    """Per measure row: the length of the final model's left-out residual (mm), for the outlier screen."""
+    """Per measure row: the length of the final model's left-out residual (mm). (The outlier screen reads the selected
+    model's, before the final bounded fit: `hilcal.discovery.screen`.)"""
     zero_offsets_mm: np.ndarray | None = field(default=None, repr=False)
     """Per leg: how much it reads long (mm) at home with the calibrated geometry, joint frames removed."""
     excluded: tuple[dict[str, float], ...] = ()
     """Measure rows left out of the fit as measurement outliers: seq, left-out residual (mm), times the median."""
+    unknown_rows: tuple[dict[str, Any], ...] = ()
+    """Measure rows where a chosen history term cannot apply (never outliers): seq, legs, groups, left-out residual."""
+    unconfirmed: tuple[str, ...] = ()
+    """Keys of the final model's groups whose step made the held-out verify figure worse (judged with any reported
+    session shift removed). They stay in the model the tests chose; `compensation` leaves them out unless
+    `diagnose(..., include_unconfirmed=True)`."""
+    compensation_after: AccuracySummary | None = None
+    """Held-out verify accuracy of the exported compensation set's model (the final model when nothing is left
+    out)."""
 
     @property
     def faults(self) -> tuple[NamedEffect, ...]:
@@ -294,6 +317,9 @@ class Diagnosis:
             "compensation": None if self.compensation is None else self.compensation.to_json(),
             "wiring": None if self.wiring is None else self.wiring.to_json(),
             "excluded_rows": list(self.excluded),
+            "unknown_rows": list(self.unknown_rows),
+            "unconfirmed": list(self.unconfirmed),
+            "compensation_after": None if self.compensation_after is None else self.compensation_after.brief(),
             "leg_zero_offsets_mm": None if self.zero_offsets_mm is None else self.zero_offsets_mm.tolist(),
             "explanation": self.explanation,
             "parameters": self.parameters,

@@ -14,19 +14,26 @@ The rule (docs/diagnosis.md):
    `unexplained`, never `none`.
 4. The final model is refitted with every library parameter inside its possible range and the generic shapes held
    to the size the data shows; it is exported as one consistent compensation set (`hilcal.discovery.corrections`).
-   The verify rows (never used for choosing) show what each step buys on held-out poses.
+   The verify rows (never used for choosing) show what each step buys on held-out poses; a step that makes them
+   worse (judged with any reported session shift removed) is not confirmed, and its group is left out of the
+   exported set (refitted without it) unless `include_unconfirmed`.
+5. Rows the model cannot speak for are left out and the search runs again (`hilcal.discovery.screen`): rows whose
+   history terms are unknown, and measurement outliers; the context is computed once on the whole recording, so
+   leaving rows out changes no other row's regressors.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 import structlog
 from threadpoolctl import threadpool_limits
 
 from hilcal.discovery import explain
-from hilcal.discovery.aliases import Alias, alias_why, resolve, separation
+from hilcal.discovery.aliases import named_aliases, resolve
+from hilcal.discovery.context import EffectContext
 from hilcal.discovery.corrections import compensation_set
 from hilcal.discovery.findings import (
     END_STOP_TOLERANCE_MM,
@@ -43,26 +50,38 @@ from hilcal.discovery.fitting import (
     fit_model,
     group_columns,
     groups_columns,
+    judged_verify_mm,
     leg_residuals,
     model_state,
     predict,
     shape_scales,
+    unknown_terms,
     verify_accuracy,
 )
 from hilcal.discovery.generic_terms import generic_groups
 from hilcal.discovery.naming import named_effects
-from hilcal.discovery.noise import noise_yardstick
+from hilcal.discovery.noise import NoiseLevel, noise_yardstick, sphere_noise_covariance, sphere_sources
 from hilcal.discovery.physics import library_groups
 from hilcal.discovery.regression import cluster_robust_covariance
-from hilcal.discovery.result import CandidateResult, Diagnosis, Step
-from hilcal.discovery.selection import GroupTest, assess, choose, similar
+from hilcal.discovery.result import CandidateResult, Diagnosis, SessionShift, Step
+from hilcal.discovery.screen import (
+    OUTLIER_FACTOR,
+    Screened,
+    outlier_sentence,
+    screen_rows,
+    unknown_json,
+    unknown_rows,
+    unknown_sentence,
+)
+from hilcal.discovery.selection import GroupTest, assess, choose
 from hilcal.discovery.shapes import shapes_for
-from hilcal.discovery.term_groups import GENERIC, LIBRARY, TermGroup
+from hilcal.discovery.term_groups import GENERIC, LIBRARY, TermGroup, stack_phi
 from hilcal.error_models import pose_difference
 from hilcal.identification import IdentificationResult, residual_function
+from hilcal.kinematics import forward_kinematics
 from hilcal.recording import Recording
 from hilcal.robot import Robot
-from hilcal.wiring import check_wiring
+from hilcal.wiring import LegWiring, check_wiring
 
 log = structlog.get_logger(__name__)
 
@@ -71,12 +90,6 @@ MAX_STEPS = 8
 DEFAULT_ALPHA = 0.02
 """Family-wise false-alarm rate of a diagnosis on a recording without missing physics (library and generic
 families share it); step k of the search uses alpha / k."""
-OUTLIER_FACTOR = 4.0
-"""A measure row is a measurement outlier when the final model's left-out residual there is beyond 4 times the
-median (for Gaussian noise in six pose components the median is about 2.4 sigma, so this is about 9 sigma)."""
-MAX_OUTLIER_SHARE = 0.05
-MIN_OUTLIER_ALLOWANCE = 2
-"""At most 5 % of the measure rows (and never fewer than 2) are left out as outliers; more is structure or noise."""
 WIRING = "leg_wiring"
 """The effect name of a set-up fault in the leg readings' order or direction (hilcal.wiring)."""
 ALIAS_GAIN = 0.9
@@ -125,6 +138,10 @@ class _Selection:
     chosen_tests: dict[str, GroupTest]
     evidence: dict[str, dict[str, float]]
     fit: IdentificationResult
+    models: list[tuple[list[TermGroup], IdentificationResult]] = dataclasses.field(default_factory=list)
+    """The model after every step (groups and fit), for the held-out verdict of each step."""
+    screened: Screened | None = None
+    """The screen that stopped the selection early (`_select`'s `early`), else None."""
 
 
 def _drop_test(p: Problem, chosen: list[TermGroup], group: TermGroup, alpha: float, n_boot: int,
@@ -162,6 +179,7 @@ def _swap(p: Problem, sel: _Selection, library: list[TermGroup], alpha: float, n
                     continue
                 fit = fit_model(p, trial, sel.fit)
                 sel.chosen, sel.fit, best_cv, improved = trial, fit, cv, True
+                sel.models.append((list(trial), fit))
                 sel.chosen_tests[new.key] = test
                 sel.steps.append(Step(len(sel.steps) + 1, new.key, new.effect, new.kind, new.title, test.rank,
                                       test.f_statistic, test.p_value, test.p_wild, test.p_gauss,
@@ -172,8 +190,11 @@ def _swap(p: Problem, sel: _Selection, library: list[TermGroup], alpha: float, n
 
 
 def _select(p: Problem, candidates: list[TermGroup], alpha: float, n_boot: int, seed: int, max_steps: int,
-            geo: IdentificationResult) -> _Selection:
-    """Forward selection (alpha / k at step k) with backward elimination of groups that the later ones explain."""
+            geo: IdentificationResult, early: bool = False) -> _Selection:
+    """Forward selection (alpha / k at step k) with backward elimination of groups that the later ones explain.
+
+    With `early`, the selection stops after the first step whose model finds rows to leave out (`screen_rows`): the
+    search will run again without them, so its later steps would be spent for nothing."""
     sel = _Selection([], [], [], {}, {}, {}, {}, {}, geo)
     state, d_dl0 = model_state(p, geo, [])
     remaining = list(candidates)
@@ -217,72 +238,61 @@ def _select(p: Problem, candidates: list[TermGroup], alpha: float, n_boot: int, 
         remaining = [g for g in remaining if g.key != best.group.key and g.key not in dropped
                      and not (g.kind == GENERIC and (g.leg, g.variable) in done)]
         sel.fit = fit_model(p, sel.chosen, sel.fit)
+        sel.models.append((list(sel.chosen), sel.fit))
         sel.steps.append(Step(index, best.group.key, best.group.effect, best.group.kind, best.group.title, best.rank,
                               best.f_statistic, best.p_value, best.p_wild, best.p_gauss, cv_now, best.cv_rms_mm,
                               verify_accuracy(p, sel.fit, sel.chosen), tuple(removed)))
         state, d_dl0 = model_state(p, sel.fit, sel.chosen)
+        if early:
+            screened = screen_rows(sel.chosen, p.ctx, state.left_out_norms_mm())
+            if screened.any:
+                sel.screened = screened
+                return sel
     if sel.chosen:
         _swap(p, sel, [g for g in candidates if g.kind == LIBRARY], alpha, n_boot, seed + 999)
     return sel
 
 
-def _aliases(p: Problem, sel: _Selection, final: IdentificationResult, seed: int) -> tuple[Alias, ...]:
-    """Every named library effect's near-aliases, with their values and what would separate them."""
-    out = []
-    for g in sel.chosen:
-        chosen_test = sel.chosen_tests.get(g.key)
-        if g.kind != LIBRARY or chosen_test is None:
-            continue
-        evidence = sel.evidence.get(g.key, {})
-        chosen_keys = [c.key for c in sel.chosen]
-        for t in sel.alike.get(g.key, ()):
-            if t.group.key in chosen_keys and chosen_keys.index(t.group.key) < chosen_keys.index(g.key):
-                continue
-            model = [c for c in sel.chosen if c.key != t.group.key]
-            now, poses, after, payload = separation(p.robot, final_without(final, sel.chosen, t.group), model, g,
-                                                    t.group, p.mea.legs_mm, p.mea.meas, p.ctx, seed)
-            factor = None
-            if g.key in evidence and t.group.key in evidence:
-                factor = (evidence[g.key] - evidence[t.group.key]) / np.log(10.0)
-            cosine = similar(chosen_test, t)
-            out.append(Alias(
-                g.key, t.group.key, t.group.title, cosine, t.press_gain_mm / max(chosen_test.press_gain_mm, 1e-300),
-                factor, dict(zip(t.group.names, map(float, t.estimate), strict=True)),
-                dict(zip(t.group.names, map(float, t.std_errors), strict=True)), t.grades,
-                alias_why(g, t.group, p.ctx, cosine), now, poses, after, payload, t.group.key in chosen_keys,
-            ))
-    return tuple(out)
-
-
-def final_without(final: IdentificationResult, chosen: list[TermGroup], group: TermGroup) -> IdentificationResult:
-    """The final fit with one chosen group's parameters removed (to test it against another as an alias)."""
-    if group not in chosen:
-        return final
-    start = N_GEO + sum(g.n_params for g in chosen[:chosen.index(group)])
-    keep = np.r_[0:start, start + group.n_params:final.x.size]
-    return dataclasses.replace(final, x=final.x[keep], names=tuple(np.array(final.names)[keep]))
-
-
 def diagnose(
     rec: Recording, robot: Robot, *, alpha: float = DEFAULT_ALPHA, n_boot: int = 999, seed: int = 0,
     cmm_sigma_mm: float | None = None, max_steps: int = MAX_STEPS, generic: bool = True,
-    pose_sigma: tuple[float, float] | None = None,
+    pose_sigma: tuple[float, float] | None = None, include_unconfirmed: bool = False,
 ) -> Diagnosis:
     """Locate, name and model the physics that the rigid geometric model leaves out of a recording.
 
     The noise yardstick may be stated: ``cmm_sigma_mm`` (sphere centres, through the robot file's sphere layout) or
     ``pose_sigma`` (mm per position coordinate, degrees per orientation axis: a tracker's 6-DoF probe).
+    ``include_unconfirmed`` keeps the groups whose step made the held-out verify figure worse in the exported
+    compensation set (by default they are left out of it, and its geometry is refitted without them).
 
     BLAS runs on one thread here: the matrices are small (6 N rows, tens of columns), so threads only add
     synchronisation, and on a busy PC their busy-waiting made the search several times slower
     (benchmarks/bench_diagnose.py)."""
     with threadpool_limits(limits=1, user_api="blas"):
         return _diagnose(rec, robot, alpha=alpha, n_boot=n_boot, seed=seed, cmm_sigma_mm=cmm_sigma_mm,
-                         max_steps=max_steps, generic=generic, pose_sigma=pose_sigma)
+                         max_steps=max_steps, generic=generic, pose_sigma=pose_sigma,
+                         include_unconfirmed=include_unconfirmed)
+
+
+def _titles(groups: tuple[TermGroup, ...]) -> dict[str, str]:
+    return {g.key: g.effect if g.kind == LIBRARY else g.title for g in groups}
+
+
+def _with_sentence(diag: Diagnosis, said: str, first: bool) -> Diagnosis:
+    """The diagnosis with one more summary sentence: first, or after the others (before the evidence)."""
+    if first:
+        return dataclasses.replace(diag, summary=(said, *diag.summary), explanation=f"{said} {diag.explanation}")
+    text = diag.explanation
+    if diag.evidence and text.endswith(diag.evidence):
+        text = f"{text[:-len(diag.evidence)]}{said} {diag.evidence}"
+    else:
+        text = f"{text} {said}"
+    return dataclasses.replace(diag, summary=(*diag.summary, said), explanation=text)
 
 
 def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: int, cmm_sigma_mm: float | None,
-              max_steps: int, generic: bool, pose_sigma: tuple[float, float] | None) -> Diagnosis:
+              max_steps: int, generic: bool, pose_sigma: tuple[float, float] | None,
+              include_unconfirmed: bool) -> Diagnosis:
     wiring = check_wiring(rec.legs_mm, rec.meas, robot)
     if wiring.problem:
         log.info("leg_wiring", problem=wiring.sentence())
@@ -290,25 +300,77 @@ def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: 
             rec = dataclasses.replace(rec, legs_mm=wiring.corrected(rec.legs_mm))
     kwargs = {"alpha": alpha, "n_boot": n_boot, "seed": seed, "cmm_sigma_mm": cmm_sigma_mm, "max_steps": max_steps,
               "generic": generic, "pose_sigma": pose_sigma}
-    diag = _search(rec, robot, **kwargs)
-    outliers = _outliers(diag.left_out_mm)
-    if outliers.size:
-        rows = np.flatnonzero(rec.phase == "measure")[outliers]
-        median = float(np.median(diag.left_out_mm))
-        excluded = tuple({"seq": float(rec.seq[r]), "left_out_mm": float(diag.left_out_mm[k]),
-                          "times_median": float(diag.left_out_mm[k] / median)} for r, k in zip(rows, outliers,
-                                                                                                 strict=True))
-        log.info("outliers_excluded", seq=[e["seq"] for e in excluded])
-        diag = _search(rec.rows(~np.isin(np.arange(rec.n), rows)), robot, stops_from=rec, **kwargs)
-        at_stop = {r: f", leg {s.leg} at its {s.extreme}" for r in rows for s in diag.end_stops
+    ctx = EffectContext.from_recording(rec, robot)
+    unit = (sphere_noise_covariance(robot, rec.meas, 1.0, robot.characteristic_length_mm)
+            if sphere_sources(rec, robot, cmm_sigma_mm) else None)
+
+    def rows(keep: np.ndarray | None) -> dict[str, Any]:
+        """The per-row inputs worked out once on the whole recording, for its kept rows."""
+        return {"unit_covariance": unit if unit is None or keep is None else unit[keep]}
+
+    described = {"seed": seed, "include_unconfirmed": include_unconfirmed}
+    searched = _searched(rec, robot, ctx, early=True, **kwargs, **rows(None))
+    screened = searched.screened()
+    if not screened.any:
+        return _wired(_describe(searched, robot, **described), wiring)
+    measure_rows = np.flatnonzero(rec.phase == "measure")
+    leave = _left_out_rows(screened, measure_rows, rec.n)
+    again = _searched(rec.rows(~leave), robot, ctx.rows(~leave), **kwargs, **rows(~leave))
+    if searched.early and not _confirmed(again, screened, rec, ctx, measure_rows):
+        log.info("early_screen_not_confirmed")
+        searched = _searched(rec, robot, ctx, **kwargs, **rows(None))
+        screened = searched.screened()
+        leave = _left_out_rows(screened, measure_rows, rec.n)
+        again = _searched(rec.rows(~leave), robot, ctx.rows(~leave), **kwargs, **rows(~leave))
+    return _wired(_with_rows_left_out(_describe(again, robot, stops_from=rec, **described), screened, searched, rec,
+                                      measure_rows), wiring)
+
+
+def _left_out_rows(screened: Screened, measure_rows: np.ndarray, n: int) -> np.ndarray:
+    """[n] the rows of the recording to leave out: outliers and rows whose terms are unknown."""
+    leave = np.zeros(n, dtype=bool)
+    leave[measure_rows[np.concatenate([screened.outliers, screened.found.rows]).astype(int)]] = True
+    return leave
+
+
+def _confirmed(again: _Searched, screened: Screened, rec: Recording, ctx: EffectContext,
+               measure_rows: np.ndarray) -> bool:
+    """Whether the rows an early screen left out are what the model fitted without them says: every outlier's
+    left-out residual still beyond OUTLIER_FACTOR times the median, every row of unknown history still unknown to its
+    terms, and no further row to leave out."""
+    if again.screened().any:
+        return False
+    rows = measure_rows[screened.outliers]
+    median = again.screened().median_mm
+    if rows.size and np.any(again.predicted_mm(rec.rows(rows), ctx.rows(rows)) <= OUTLIER_FACTOR * median):
+        return False
+    unknown = measure_rows[screened.found.rows]
+    return bool(not unknown.size or set(unknown_rows(again.sel.chosen, ctx.rows(unknown)).rows.tolist())
+                == set(range(unknown.size)))
+
+
+def _with_rows_left_out(diag: Diagnosis, screened: Screened, searched: _Searched, rec: Recording,
+                        measure_rows: np.ndarray) -> Diagnosis:
+    """The diagnosis of the kept rows with the sentences and JSON of the rows left out."""
+    left_out, median = screened.left_out_mm, screened.median_mm
+    rows = measure_rows[screened.outliers]
+    excluded = tuple({"seq": float(rec.seq[r]), "left_out_mm": float(left_out[k]),
+                      "times_median": float(left_out[k] / median)}
+                     for r, k in zip(rows, screened.outliers, strict=True))
+    unknown = unknown_json(screened.found, rec.seq[measure_rows], left_out, median)
+    log.info("rows_left_out", outliers=[e["seq"] for e in excluded], unknown=[e["seq"] for e in unknown])
+    if rows.size:
+        at_stop = {int(r): f", leg {s.leg} at its {s.extreme}" for r in rows for s in diag.end_stops
                    if abs(rec.legs_mm[r, s.leg - 1] - s.reading_mm) <= END_STOP_TOLERANCE_MM}
-        listed = ", ".join(f"seq {e['seq']:.0f} ({e['left_out_mm']:.4f} mm, {e['times_median']:.0f}x"
-                           f"{at_stop.get(r, '')})" for r, e in zip(rows, excluded, strict=True))
-        said = (f"Measurement outlier(s) left out of the fit: {listed}: the left-out residual of the model is more "
-                f"than {OUTLIER_FACTOR:g} times the median of the measure rows ({median:.4f} mm); a bad measurement "
-                "(a broken beam, a probing error, a knock) or a collision: re-measure these poses.")
-        diag = dataclasses.replace(diag, excluded=excluded, summary=(said, *diag.summary),
-                                   explanation=f"{said} {diag.explanation}")
+        diag = _with_sentence(diag, outlier_sentence(rows, excluded, median, at_stop), True)
+    said = unknown_sentence(screened.found, unknown, searched.p.ctx, _titles(tuple(searched.sel.chosen)))
+    if said:
+        diag = _with_sentence(diag, said, False)
+    return dataclasses.replace(diag, excluded=excluded, unknown_rows=unknown)
+
+
+def _wired(diag: Diagnosis, wiring: LegWiring) -> Diagnosis:
+    """The diagnosis with the leg-wiring check: a set-up fault sentence first when the readings were re-ordered."""
     if not wiring.problem:
         return dataclasses.replace(diag, wiring=wiring)
     said = wiring.sentence([f"leg{i}_mm" for i in range(1, 7)])
@@ -325,35 +387,89 @@ def _diagnose(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: 
                                compensation=compensation)
 
 
-def _outliers(left_out_mm: np.ndarray | None) -> np.ndarray:
-    """Measure rows (indices) whose left-out residual is beyond OUTLIER_FACTOR times the median; none when more than
-    the allowance would go (then it is structure or noise, not a few bad measurements)."""
-    if left_out_mm is None or left_out_mm.size < 10:
-        return np.zeros(0, dtype=int)
-    finite = np.isfinite(left_out_mm)
-    median = float(np.median(left_out_mm[finite]))
-    out = np.flatnonzero(finite & (left_out_mm > OUTLIER_FACTOR * median))
-    allowed = max(MIN_OUTLIER_ALLOWANCE, int(MAX_OUTLIER_SHARE * left_out_mm.size))
-    return out if out.size <= allowed else np.zeros(0, dtype=int)
+def _judge(p: Problem, geo: IdentificationResult, sel: _Selection, shift: SessionShift | None) -> list[Step]:
+    """Every step with its held-out verify figure before and after, judged with any reported session shift
+    removed (the verify rows never choose; they only confirm or not)."""
+    legs = () if shift is None else shift.legs
+    if legs:
+        figures = [judged_verify_mm(p, geo, [], legs)] + [judged_verify_mm(p, fit, groups, legs)
+                                                           for groups, fit in sel.models]
+    else:
+        before = verify_accuracy(p, geo, [])
+        figures = [None if before is None else before.position_mm.rms] + [
+            None if s.verify is None else s.verify.position_mm.rms for s in sel.steps]
+    return [dataclasses.replace(s, judged_before_mm=figures[k], judged_mm=figures[k + 1])
+            for k, s in enumerate(sel.steps)]
 
 
-def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: int, cmm_sigma_mm: float | None,
-            max_steps: int, generic: bool, pose_sigma: tuple[float, float] | None,
-            stops_from: Recording | None = None) -> Diagnosis:
-    """The diagnosis of `rec` as given (end stops are looked for in `stops_from`, the rows before any exclusion)."""
-    p = Problem.of(rec, robot)
+@dataclasses.dataclass
+class _Searched:
+    """The selection on one set of rows: the problem, its library, the geometry-only fit, the noise and the steps."""
+
+    rec: Recording
+    p: Problem
+    library: list[TermGroup]
+    untestable: dict[str, str]
+    geo: IdentificationResult
+    cv_geometry: float
+    leg_res: np.ndarray
+    noise: NoiseLevel
+    sel: _Selection
+
+    @property
+    def early(self) -> bool:
+        """The selection stopped at its first step that found rows to leave out."""
+        return self.sel.screened is not None
+
+    def screened(self) -> Screened:
+        """The screen of the measure rows under the selected model (or the model that stopped it early)."""
+        if self.sel.screened is not None:
+            return self.sel.screened
+        chosen = self.sel.chosen
+        state = model_state(self.p, self.sel.fit if chosen else self.geo, chosen)[0]
+        return screen_rows(chosen, self.p.ctx, state.left_out_norms_mm())
+
+    def predicted_mm(self, rec: Recording, ctx: EffectContext) -> np.ndarray:
+        """Per row of another set of rows: the length (mm, rotations at the platform's length) of the selected
+        model's residual there; for rows the fit left out, their left-out residual."""
+        chosen, fit = self.sel.chosen, self.sel.fit if self.sel.chosen else self.geo
+        legs = rec.legs_mm + (stack_phi(chosen, ctx) @ fit.x[N_GEO:] if chosen else 0.0)
+        predicted = forward_kinematics(fit.geometry(self.p.robot), legs, rec.meas)
+        return np.linalg.norm(pose_difference(rec.meas, predicted, self.p.length_mm), axis=1)
+
+
+def _searched(rec: Recording, robot: Robot, ctx: EffectContext, *, alpha: float, n_boot: int, seed: int,
+              cmm_sigma_mm: float | None, max_steps: int, generic: bool,
+              pose_sigma: tuple[float, float] | None, early: bool = False,
+              unit_covariance: np.ndarray | None = None) -> _Searched:
+    """Geometry, noise yardstick and forward selection on `rec` as given, with `ctx` its rows' context (computed on
+    the whole recording when `rec` is a subset of it; so is `unit_covariance`, see `noise_yardstick`); `early`: see
+    `_select`."""
+    p = Problem.of(rec, robot, ctx)
     library, untestable = library_groups(p.ctx, robot)
     candidates = library + (generic_groups(p.ctx) if generic else [])
     geo = fit_model(p, [], label="geometry only")
     cv_geometry = model_state(p, geo, [])[0].cv_mm
-
-    sel = _select(p, candidates, alpha, n_boot, seed, max_steps, geo)
-    chosen, steps, rejected, alternatives = sel.chosen, sel.steps, sel.rejected, sel.alternatives
-    cv_final = _cv_mm(p, chosen, sel.fit) if chosen else cv_geometry
-
     leg_res = leg_residuals(p, geo, [])
-    final = final_fit(p, chosen, sel.fit if chosen else geo, shape_scales(leg_res[p.measure]),
-                      max(sel.fit.rms_residual, 1e-6))
+    residuals_all = pose_difference(rec.meas, predict(p, geo, [], np.ones(rec.n, dtype=bool)), p.length_mm)
+    noise = noise_yardstick(rec, robot, residuals_all, p.length_mm, cmm_sigma_mm, pose_sigma, p.ctx_all.session,
+                            unit_covariance)
+    p.shape_prior = (shape_scales(leg_res[p.measure]), None if noise.chosen is None else max(
+        float(np.sqrt(np.mean(np.trace(noise.chosen.covariance[p.measure], axis1=1, axis2=2)) / 6.0)), 1e-9))
+    sel = _select(p, candidates, alpha, n_boot, seed, max_steps, geo, early)
+    return _Searched(rec, p, library, untestable, geo, cv_geometry, leg_res, noise, sel)
+
+
+def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: bool,
+              stops_from: Recording | None = None) -> Diagnosis:
+    """The diagnosis of a selection: the final bounded fit, held-out figures and verdicts, noise comparison, shapes,
+    aliases, the compensation set and the answer in words; end stops are looked for in `stops_from`, the rows
+    before any exclusion."""
+    rec, p, geo, sel, noise, leg_res = s.rec, s.p, s.geo, s.sel, s.noise, s.leg_res
+    chosen, rejected, alternatives = sel.chosen, sel.rejected, sel.alternatives
+    cv_final = _cv_mm(p, chosen, sel.fit) if chosen else s.cv_geometry
+    scales, noise_mm = p.shape_prior[0], max(sel.fit.rms_residual, 1e-6)
+    final = final_fit(p, chosen, sel.fit if chosen else geo, scales, noise_mm)
     r_final, J_final = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm,
                                          p.phi_of(chosen))(final.x)
     cov = cluster_robust_covariance(J_final, r_final, p.mea.n)
@@ -361,21 +477,28 @@ def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: in
     before = verify_accuracy(p, geo, [])
     after = verify_accuracy(p, final, chosen)
 
-    residuals_all = pose_difference(rec.meas, predict(p, geo, [], np.ones(rec.n, dtype=bool)), p.length_mm)
-    noise = noise_yardstick(rec, robot, residuals_all, p.length_mm, cmm_sigma_mm, pose_sigma)
     r_geo, J_geo = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm)(geo.x)
     ratio = None
     if noise.chosen is not None:
         ratio = noise_comparison(p.robot, p.mea.meas, noise.chosen.covariance[p.measure], (r_geo, J_geo),
                                  (r_final, J_final), p.length_mm)
     shift = session_shift(p.ctx_all, p.measure, leg_residuals(p, final, chosen), rec,
-                          lambda rows, offsets: predict(p, final, chosen, rows, offsets))
+                          lambda rows, offsets: predict(p, final, chosen, rows, offsets), unknown_terms(p, chosen))
+    steps = _judge(p, geo, sel, shift)
+    chosen_keys = {g.key for g in chosen}
+    unconfirmed = tuple(dict.fromkeys(s.key for s in steps if s.confirmed is False and s.key in chosen_keys))
+    loadable = chosen if include_unconfirmed else [g for g in chosen if g.key not in unconfirmed]
+    model_terms = compensation_set(p.ctx_all, final, chosen)
+    loadable_fit, compensation = final, model_terms
+    if len(loadable) < len(chosen):
+        loadable_fit = final_fit(p, loadable, fit_model(p, loadable, sel.fit) if loadable else geo, scales, noise_mm)
+        compensation = compensation_set(p.ctx_all, loadable_fit, loadable)
+    compensation_after = after if loadable_fit is final else verify_accuracy(p, loadable_fit, loadable)
     shapes = shapes_for(robot, p.ctx, final, cov, J_final, chosen, steps, before, alternatives, seed)
-    compensation = compensation_set(p.ctx_all, final, chosen)
     left_out = model_state(p, final, chosen)[0].left_out_norms_mm()
     offsets = zero_offsets(robot, final.geometry(robot))
     zero_said = zero_sentence(robot, offsets)
-    aliases = _aliases(p, sel, final, seed)
+    aliases = named_aliases(p, sel.chosen, sel.chosen_tests, sel.alike, sel.evidence, final, seed)
 
     effects: list[str] = []
     for g in chosen:
@@ -389,23 +512,23 @@ def _search(rec: Recording, robot: Robot, *, alpha: float, n_boot: int, seed: in
     named = named_effects(chosen, params, std, p.ctx)
     findings = locate(p.ctx_all, rec, leg_res)
     stops = end_stops(rec if stops_from is None else stops_from, robot)
+    verdict = explain.Verdict(unconfirmed, include_unconfirmed, compensation_after, bool(shift and shift.legs))
     answer = explain.Answer(
-        effect, effects, chosen, steps, params, std, noise, ratio, shapes, shift, rejected, untestable, aliases,
-        before, after, findings, named, stops, tuple(p.not_converged), compensation,
+        effect, effects, chosen, steps, params, std, noise, ratio, shapes, shift, rejected, s.untestable, aliases,
+        before, after, findings, named, stops, tuple(p.not_converged), model_terms, verdict,
     )
-    log.info("diagnosed", effects=effects, steps=len(steps), not_converged=p.not_converged)
+    log.info("diagnosed", effects=effects, steps=len(steps), not_converged=p.not_converged, unconfirmed=unconfirmed)
     return Diagnosis(
         effect=effect, effects=tuple(effects), explanation=explain.compose(answer), parameters=params, std_errors=std,
         before=before, after=after, steps=tuple(steps),
-        candidates=_candidate_results(sel.first_tests, library, untestable, {g.key for g in chosen}),
+        candidates=_candidate_results(sel.first_tests, s.library, s.untestable, chosen_keys),
         rejected=tuple(rejected.items()), ambiguous_with=tuple(a.other for a in aliases),
-        cv_rms_geometry_mm=cv_geometry, cv_rms_final_mm=cv_final, noise=noise, noise_ratio=ratio,
+        cv_rms_geometry_mm=s.cv_geometry, cv_rms_final_mm=cv_final, noise=noise, noise_ratio=ratio,
         shapes=tuple(shapes), session_shift=shift, findings=findings, groups=tuple(chosen), geometry_fit=geo,
         final_fit=final, leg_residuals_mm=leg_res, leg_residuals_final_mm=leg_residuals(p, final, chosen),
         context=p.ctx_all, measure=p.measure, named=named, aliases=aliases, end_stops=stops,
         not_converged=tuple(p.not_converged), compensation=compensation,
-        summary=(*([zero_said] if zero_said else []),
-                 *explain.summary_sentences(named, shapes, aliases, shift, stops, tuple(p.not_converged), effects,
-                                            ratio, noise, compensation)),
+        summary=(*([zero_said] if zero_said else []), *explain.summary_sentences(answer)),
         evidence=explain.evidence(answer), left_out_mm=left_out, zero_offsets_mm=offsets,
+        unconfirmed=unconfirmed, compensation_after=compensation_after,
     )

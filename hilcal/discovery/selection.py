@@ -16,6 +16,9 @@ The families are the library (most of the error budget: it is prior knowledge) a
 
 from __future__ import annotations
 
+import functools
+import itertools
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -166,56 +169,127 @@ def _min_p_adjust(p_obs: np.ndarray, f_star: np.ndarray, ranks: np.ndarray, dof:
 def _bases(Q: np.ndarray, dof: int, columns: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """(index, projected columns Xt, orthonormal basis Qk) of every group that adds something, batched by width.
 
-    The basis comes from the eigen-decomposition of the small Gram matrix of the column-scaled projection
-    (Qk = Xs V / sqrt(lambda)); a group whose Gram matrix is rank-deficient falls back to an SVD."""
-    by_width: dict[int, list[int]] = {}
-    for k, X in enumerate(columns):
-        by_width.setdefault(X.shape[1], []).append(k)
+    Every group's columns are projected off the model in one product, laid out width class by width class so each
+    class is one contiguous block. The basis comes from the eigen-decomposition of the small Gram matrix of the
+    column-scaled projection (Qk = Xs V / sqrt(lambda)), formed for a whole width class at once; groups whose Gram
+    matrix is ill-conditioned take an SVD instead (batched too)."""
+    if not columns:
+        return []
+    widths = np.array([X.shape[1] for X in columns])
+    order = np.argsort(widths, kind="stable")
+    X_all = np.concatenate([columns[k] for k in order], axis=1)
+    Xt_all = X_all - Q @ (Q.T @ X_all)
+    norm_x2 = np.einsum("ij,ij->j", X_all, X_all)
+    col2 = np.einsum("ij,ij->j", Xt_all, Xt_all)
+    m = X_all.shape[0]
     out = []
-    Qt = Q.T
-    for width, idx in by_width.items():
-        X = np.stack([columns[k] for k in idx])
-        Xt = X - Q @ (Qt @ X)
-        norm_x = np.linalg.norm(X, axis=(1, 2))
-        norm_t = np.linalg.norm(Xt, axis=(1, 2))
-        col = np.linalg.norm(Xt, axis=1)
+    first_column, first_group = 0, 0
+    for width in np.unique(widths):
+        n = int(np.sum(widths == width))
+        idx = order[first_group:first_group + n]
+        cols = slice(first_column, first_column + n * width)
+        first_group, first_column = first_group + n, first_column + n * width
+        Xt = Xt_all[:, cols].reshape(m, n, width).transpose(1, 0, 2)
+        norm_x = np.sqrt(norm_x2[cols].reshape(n, width).sum(axis=1))
+        col = np.sqrt(col2[cols].reshape(n, width))
+        norm_t = np.sqrt(np.sum(col**2, axis=1))
         scaled = Xt / np.where(col > 0, col, 1.0)[:, None, :]
         lam, V = np.linalg.eigh(np.swapaxes(scaled, 1, 2) @ scaled)
-        for j, k in enumerate(idx):
-            if norm_t[j] <= 1e-7 * max(norm_x[j], 1e-300) or not np.any(col[j] > 0) or lam[j, -1] <= 0:
-                continue
-            s = np.sqrt(np.clip(lam[j, ::-1], 0.0, None))
-            rank = int(np.sum(s > s[0] * RANK_TOL))
-            if rank == 0 or rank >= dof - 1:
-                continue
-            if rank == width and np.all(col[j] > 0) and s[-1] > s[0] * 1e-4:
-                basis = scaled[j] @ (V[j] / np.sqrt(lam[j]))
-            else:
-                basis = orth(Xt[j], RANK_TOL)
-            out.append((k, Xt[j], basis))
+        s = np.sqrt(np.clip(lam[:, ::-1], 0.0, None))
+        top = np.where(s[:, 0] > 0, s[:, 0], 1.0)
+        rank = np.sum(s > top[:, None] * RANK_TOL, axis=1)
+        adds = (norm_t > 1e-7 * np.maximum(norm_x, 1e-300)) & np.any(col > 0, axis=1) & (lam[:, -1] > 0)
+        adds &= (rank > 0) & (rank < dof - 1)
+        all_columns = np.all(col > 0, axis=1)
+        full = adds & (rank == width) & all_columns & (s[:, -1] > s[:, 0] * 1e-4)
+        bases: dict[int, np.ndarray] = {}
+        if full.any():
+            made = scaled[full] @ (V[full] / np.sqrt(lam[full])[:, None, :])
+            bases.update(zip(np.flatnonzero(full).tolist(), made, strict=True))
+        svd = adds & ~full & all_columns
+        if svd.any():
+            U, sv, _ = np.linalg.svd(scaled[svd], full_matrices=False)
+            for j, u, values in zip(np.flatnonzero(svd).tolist(), U, sv, strict=True):
+                bases[j] = u[:, values > values[0] * RANK_TOL]
+        for j, k in enumerate(idx.tolist()):
+            if adds[j]:
+                out.append((k, Xt[j], bases[j] if j in bases else orth(Xt[j], RANK_TOL)))
     out.sort(key=lambda item: item[0])
     return out
 
 
-def _projections(R: np.ndarray, Q: np.ndarray, Q_all: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
-    """((Q'R, Q_all'R), |R|^2 per draw) of null draws R [6N, B]; the candidate bases are orthogonal to Q, so
-    Q_all'R is already the projection of the model-projected draws. The candidates' part, thousands of columns by
-    a thousand draws, is formed in single precision: its relative error (1e-7) is far below what a p-value
-    resolved to 1/(draws + 1) can show, and it halves the search's largest product."""
-    return (Q.T @ R, Q_all.T.astype(np.float32) @ R.astype(np.float32)), np.sum(R**2, axis=0)
+THREADS = 2
+"""The bootstrap's candidate products are split by columns over this many threads: single-threaded BLAS releases the
+GIL, so the halves run on both cores of a small PC (BLAS's own threads busy-wait; see search.diagnose)."""
 
 
-def _wild_projections(r0: np.ndarray, Q: np.ndarray, Q_all: np.ndarray, n_poses: int, signs: np.ndarray
-                      ) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
-    """`_projections` of the wild draws R[6n + a, b] = adj[n, a] * sign[n, b] without forming R: a basis acts on a
-    draw through its per-pose inner products with the adjusted residuals (6x fewer flops than the full product)."""
-    adj = leverage_adjusted(r0, Q, n_poses)
+@dataclass(frozen=True)
+class _Draws:
+    """The null draws of one step: wild signs per pose with the leverage-adjusted residuals, Gaussian draws, and
+    what the model itself takes from them."""
 
-    def per_pose(basis: np.ndarray) -> np.ndarray:
-        return np.einsum("nak,na->kn", basis.reshape(n_poses, 6, -1), adj)
+    signs: np.ndarray
+    adjusted: np.ndarray
+    gauss: np.ndarray
+    rss: tuple[np.ndarray, np.ndarray]
+    """Per draw, the sum of squares left after the model: (wild, Gaussian)."""
 
-    total = np.full(signs.shape[1], float(np.sum(adj**2)))
-    return (per_pose(Q) @ signs, per_pose(Q_all).astype(np.float32) @ signs.astype(np.float32)), total
+    @classmethod
+    def make(cls, r0: np.ndarray, Q: np.ndarray, n_poses: int, n_boot: int, seed: int) -> _Draws:
+        signs, gauss, signs32, gauss32, gauss_total = _random_draws(seed, n_poses, r0.size, n_boot)
+        adj = leverage_adjusted(r0, Q, n_poses)
+        wild_rss = float(np.sum(adj**2)) - np.sum((_per_pose(Q, adj, n_poses) @ signs) ** 2, axis=0)
+        gauss_rss = gauss_total - np.sum((Q.T @ gauss) ** 2, axis=0)
+        return cls(signs32, adj, gauss32, (wild_rss, gauss_rss))
+
+    def candidate_sums(self, Q_part: np.ndarray, offsets: np.ndarray, n_poses: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per group of a block of candidate bases (offsets relative to the block) and per draw, the squared length
+        of the draw's projection on the group: (wild, Gaussian). The candidates' part, thousands of columns by a
+        thousand draws, is formed in single precision: its relative error (1e-7) is far below what a p-value
+        resolved to 1/(draws + 1) can show, and it halves the search's largest product. A wild draw
+        R[6n + a, b] = adj[n, a] * sign[n, b] acts on a basis through its per-pose inner products with the adjusted
+        residuals (6x fewer flops than the full product); the bases are orthogonal to the model, so their products
+        with a draw are already those of the model-projected draw."""
+        wild = _per_pose(Q_part, self.adjusted, n_poses).astype(np.float32) @ self.signs
+        gauss = Q_part.T.astype(np.float32) @ self.gauss
+        return (np.add.reduceat(wild**2, offsets, axis=0).astype(float),
+                np.add.reduceat(gauss**2, offsets, axis=0).astype(float))
+
+
+@functools.lru_cache(maxsize=4)
+def _random_draws(seed: int, n_poses: int, m: int, n_boot: int) -> tuple[np.ndarray, ...]:
+    """The seeded null draws (signs per pose, Gaussian per residual; also in single precision) and the Gaussian
+    draws' sums of squares: the same for every test of one step (the backward elimination tests each chosen group
+    with one seed), so they are drawn once."""
+    rng = np.random.default_rng(seed)
+    signs = rng.choice([-1.0, 1.0], size=(n_poses, n_boot))
+    gauss = rng.standard_normal((m, n_boot))
+    for a in (signs, gauss):
+        a.flags.writeable = False
+    return signs, gauss, signs.astype(np.float32), gauss.astype(np.float32), np.sum(gauss**2, axis=0)
+
+
+def _per_pose(basis: np.ndarray, adj: np.ndarray, n_poses: int) -> np.ndarray:
+    """[k, N] inner products of every basis column with the adjusted residuals, pose by pose."""
+    return np.einsum("nak,na->kn", basis.reshape(n_poses, 6, -1), adj)
+
+
+def _null_sums(draws: _Draws, Q_all: np.ndarray, ranks: np.ndarray, n_poses: int) -> tuple[np.ndarray, np.ndarray]:
+    """`_Draws.candidate_sums` of every group, the groups split in THREADS blocks of about equal columns."""
+    ends = np.cumsum(ranks)
+    cuts = [0, *[int(np.searchsorted(ends, ends[-1] * k / THREADS)) + 1 for k in range(1, THREADS)], len(ranks)]
+    cuts = sorted(set(min(c, len(ranks)) for c in cuts))
+    blocks = [(a, b) for a, b in itertools.pairwise(cuts) if b > a]
+    starts = np.concatenate([[0], ends[:-1]])
+
+    def block(ab: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        a, b = ab
+        first = int(starts[a])
+        return draws.candidate_sums(Q_all[:, first:int(ends[b - 1])], starts[a:b] - first, n_poses)
+
+    with ThreadPoolExecutor(max_workers=len(blocks)) as pool:
+        parts = list(pool.map(block, blocks))
+    return np.concatenate([w for w, _ in parts]), np.concatenate([g for _, g in parts])
 
 
 def assess(state: ModelState, groups: list[TermGroup], columns: list[np.ndarray], alpha: float, n_boot: int,
@@ -229,7 +303,11 @@ def assess(state: ModelState, groups: list[TermGroup], columns: list[np.ndarray]
         alphas[GENERIC] = alpha
     if not any(g.kind == GENERIC for g in groups):
         alphas[LIBRARY] = alpha
-    kept = [(groups[k], Xt, Qk) for k, Xt, Qk in _bases(Q, dof, columns)]
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # The null draws do not depend on the candidates: they are made while the candidates' bases are.
+        making = pool.submit(_Draws.make, r0, Q, state.n_poses, n_boot, seed)
+        kept = [(groups[k], Xt, Qk) for k, Xt, Qk in _bases(Q, dof, columns)]
+        draws = making.result()
     if not kept:
         return []
     ranks = np.array([Qk.shape[1] for _, _, Qk in kept])
@@ -239,23 +317,20 @@ def assess(state: ModelState, groups: list[TermGroup], columns: list[np.ndarray]
     f_obs = (explained / ranks) / ((rss0 - explained) / (dof - ranks))
     p_obs = fdtrc(ranks, dof - ranks, f_obs)
 
-    rng = np.random.default_rng(seed)
-    signs = rng.choice([-1.0, 1.0], size=(state.n_poses, n_boot))
-    gauss = rng.standard_normal((m, n_boot))
-    adjusted = []
     families = np.array([g.kind for g, _, _ in kept])
-    for projections, total in (_wild_projections(r0, Q, Q_all, state.n_poses, signs), _projections(gauss, Q, Q_all)):
-        model_part, candidate_part = projections
-        rss = total - np.sum(model_part**2, axis=0)
-        e_star = np.add.reduceat(candidate_part**2, offsets, axis=0).astype(float)
-        f_star = (e_star / ranks[:, None]) / ((rss[None, :] - e_star) / (dof - ranks)[:, None])
+    adjusted = []
+    for e_star, rss in zip(_null_sums(draws, Q_all, ranks, state.n_poses), draws.rss, strict=True):
+        # F* = (e / q) / ((rss - e) / (dof - q)), formed in place on the [groups, draws] array.
+        f_star = np.subtract(rss[None, :], e_star)
+        np.divide(e_star, f_star, out=f_star)
+        f_star *= ((dof - ranks) / ranks)[:, None]
         adjusted.append(_min_p_adjust(p_obs, f_star, ranks, dof, families))
 
-    fitted_all = [Qk @ (Qk.T @ r0) for _, _, Qk in kept]
     # Held-out residuals only where they can matter: a group that fails its test can never be chosen, so only
     # the significant ones and the library (whose figures the report prints) need them.
     significant = np.maximum(adjusted[0], adjusted[1]) < np.array([alphas[g.kind] for g, _, _ in kept])
     need = np.flatnonzero(significant | (families == LIBRARY))
+    fitted_all = {int(k): kept[k][2] @ (kept[k][2].T @ r0) for k in need}
     press_w = np.full(len(kept), state.press)
     press_mm_all = np.full(len(kept), state.press_mm)
     computed = np.zeros(len(kept), dtype=bool)
@@ -287,7 +362,7 @@ def assess(state: ModelState, groups: list[TermGroup], columns: list[np.ndarray]
         tests.append(GroupTest(
             group, int(ranks[k]), float(f_obs[k]), float(p_obs[k]), float(adjusted[0][k]), float(adjusted[1][k]),
             state.press - float(press_w[k]), cv_w, cv_mm, state.press_mm - press_mm, estimate, se,
-            fitted_all[k] if group.kind == LIBRARY else None, rejected, alphas[group.kind], grades, rss_w, log_det,
+            fitted_all.get(k) if group.kind == LIBRARY else None, rejected, alphas[group.kind], grades, rss_w, log_det,
         ))
     return tests
 

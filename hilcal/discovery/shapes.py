@@ -4,9 +4,12 @@ recorded poses pin it down, and, when they do not, extra poses that would (`hilc
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+
 import numpy as np
 
-from hilcal.discovery.augmentation import augment
+from hilcal.discovery.augmentation import augment, candidate_jacobians, candidate_pool
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.result import Shape, Step
 from hilcal.discovery.term_groups import GENERIC, TermGroup, stack_phi
@@ -64,7 +67,8 @@ def visible_basis(robot: Robot, final: IdentificationResult, ctx: EffectContext,
 def _shape(robot: Robot, ctx: EffectContext, final: IdentificationResult, cov: np.ndarray, J: np.ndarray,
            sigma2: float, chosen: list[TermGroup], g: TermGroup, leg: int, block: np.ndarray, local: np.ndarray,
            verify: list[AccuracySummary | None], step_of: dict[str, int],
-           alternatives: dict[str, tuple[TermGroup, ...]], seed: int) -> Shape:
+           alternatives: dict[str, tuple[TermGroup, ...]], seed: int,
+           candidates: Callable[[], tuple[np.ndarray, np.ndarray]]) -> Shape:
     """One leg's correction of a generic group, its band, and extra poses when it is not pinned down.
 
     Amplitude and band that decide "pinned down" are those of the visible part at the recorded rows. The
@@ -93,7 +97,7 @@ def _shape(robot: Robot, ctx: EffectContext, final: IdentificationResult, cov: n
     if not pinned and g.variable in POSE_VARIABLES:
         aug = augment(robot, final.geometry(robot), final.length_mm, J.T @ J, sigma2,
                       lambda c: stack_phi(chosen, c.at_recorded_state(ctx)), block, band_of,
-                      PIN_FRACTION * amplitude, seed)
+                      PIN_FRACTION * amplitude, seed, candidates=candidates())
         poses = aug.poses
         proposed_band = float(aug.predicted_band_mm[-1]) if aug.predicted_band_mm.size else None
     elif not pinned:
@@ -121,6 +125,14 @@ def shapes_for(
     step_of = {s.key: s.index for s in steps}
     m, p = J.shape
     sigma2 = float(final.residuals.ravel() @ final.residuals.ravel()) / max(m - p, 1)
+
+    @functools.cache
+    def candidates() -> tuple[np.ndarray, np.ndarray]:
+        """The augmentation's pool and its Jacobians for this model: the same for every shape (made once)."""
+        pool = candidate_pool(robot, seed)
+        return pool, candidate_jacobians(robot, final.geometry(robot), pool, final.length_mm,
+                                         lambda c: stack_phi(chosen, c.at_recorded_state(ctx)))
+
     for g in chosen:
         start = offset
         offset += g.n_params
@@ -128,7 +140,7 @@ def shapes_for(
             continue
         legs = [g.leg] if g.leg is not None else list(range(6))
         group_shapes = [_shape(robot, ctx, final, cov, J, sigma2, chosen, g, leg, start + g.leg_columns(leg),
-                               g.leg_columns(leg), verify, step_of, alternatives, seed) for leg in legs]
+                               g.leg_columns(leg), verify, step_of, alternatives, seed, candidates) for leg in legs]
         large = [s for s in group_shapes if s.amplitude_mm > 2.0 * np.sqrt(sigma2)]
         if g.leg is None:
             group_shapes = large or [max(group_shapes, key=lambda s: s.amplitude_mm)]

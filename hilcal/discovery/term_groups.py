@@ -108,10 +108,21 @@ class TermGroup:
     unit: str = ""
     period_mm: float | None = None
     angle_scale_rad: float | None = None
+    history: bool = False
+    """The terms depend on the motion history (the direction of the last move): unknown at a session's first row."""
 
     @property
     def n_params(self) -> int:
         return len(self.names)
+
+    def unknown_rows(self, ctx: EffectContext) -> np.ndarray:
+        """[N, 6] where this group's terms cannot be evaluated on a leg: its history is unknown there."""
+        legs = np.zeros((ctx.n, 6), dtype=bool)
+        if self.history:
+            legs = ctx.unknown_history()
+            if self.leg is not None:
+                legs = legs & (np.arange(6) == self.leg)[None, :]
+        return legs
 
     def leg_columns(self, leg: int) -> np.ndarray:
         """Columns of the regressor (and parameters) that act on one leg."""

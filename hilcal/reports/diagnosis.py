@@ -1,6 +1,7 @@
 """`hilcal diagnose --report DIR`: plots, diagnosis.json, the compensation set (compensation.json with the refitted
-geometry and every term, and one CSV table per generic term), proposed extra poses (CSV) and a self-contained
-index.html that opens with one sentence per finding and the parameter table.
+geometry and every term, and one CSV table per generic term), proposed extra poses (CSV), the digital twin's
+comparison (twin.json, twin.png; its sim_config.toml is written by the command) and a self-contained index.html
+that opens with one sentence per finding and the parameter table.
 
 The compensation set is consistent: geometric length = reported + the sum of its terms, with its geometry; every
 table is the correction (mm) to ADD to the reported length of its leg against its variable, over the recorded
@@ -19,8 +20,9 @@ import numpy as np
 
 from hilcal.discovery.corrections import CompensationSet, Term
 from hilcal.discovery.explain import title_of
-from hilcal.discovery.result import Diagnosis, Shape
+from hilcal.discovery.result import Diagnosis, Shape, Step
 from hilcal.reports import diagnosis_plots as plots
+from hilcal.reports.diagnosis_twin import TwinComparison, twin_html, twin_plot
 from hilcal.robot import POSE_AXES
 
 
@@ -88,9 +90,24 @@ def _fmt(v: float | None, spec: str = ".3g") -> str:
     return "" if v is None or not np.isfinite(v) else format(v, spec)
 
 
-def write_report(diag: Diagnosis, out_dir: Path) -> Path:
-    """Write every file of the report into out_dir; return the page path."""
+def _verdict(step: Step) -> str:
+    """'confirmed' or 'NOT confirmed' with the held-out figures (session shift removed when one is reported)."""
+    if step.confirmed is None or step.judged_mm is None or step.judged_before_mm is None:
+        return ""
+    word = "confirmed" if step.confirmed else "NOT confirmed"
+    return f"{word} ({step.judged_before_mm:.4f} -> {step.judged_mm:.4f} mm)"
+
+
+def write_report(diag: Diagnosis, out_dir: Path, twin: TwinComparison | None = None,
+                 twin_notes: tuple[str, ...] = ()) -> Path:
+    """Write every file of the report into out_dir; return the page path. With `twin` (the recording replayed on the
+    digital twin, see procedures/cli/twin.py) also twin.json, twin.png and the page's twin section."""
     out_dir.mkdir(parents=True, exist_ok=True)
+    twin_section = ""
+    if twin is not None:
+        (out_dir / "twin.json").write_text(json.dumps({**twin.to_json(), "notes": list(twin_notes)}, indent=2))
+        twin_plot(twin, out_dir / "twin.png")
+        twin_section = twin_html(twin, _img(out_dir / "twin.png"), twin_notes)
     plots.leg_plot(diag, out_dir / "legs.png")
     plots.time_plot(diag, out_dir / "time.png")
     plots.waterfall_plot(diag, out_dir / "steps.png")
@@ -113,10 +130,11 @@ def write_report(diag: Diagnosis, out_dir: Path) -> Path:
                           f"{extra}{_img(out_dir / f'shape_{slug}.png')}")
     steps = _table(
         ["step", "group", "kind", "params", "F", "p (family-wise)", "CV before µm", "CV after µm", "verify RMS mm",
-         "removed"],
+         "held-out verdict", "removed"],
         [[str(s.index), s.key, s.kind, str(s.n_params), _fmt(s.f_statistic, ".1f"), _fmt(s.p_value),
           _fmt(s.cv_before_mm * 1000, ".2f"), _fmt(s.cv_rms_mm * 1000, ".2f"),
-          "" if s.verify is None else f"{s.verify.position_mm.rms:.4f}", ", ".join(s.removed)] for s in diag.steps],
+          "" if s.verify is None else f"{s.verify.position_mm.rms:.4f}", _verdict(s), ", ".join(s.removed)]
+         for s in diag.steps],
     )
     candidates = _table(
         ["candidate", "testable", "F", "p (family-wise)", "CV µm", "chosen", "note"],
@@ -147,6 +165,7 @@ table{{border-collapse:collapse;margin:.5em 0}}td,th{{border:1px solid #ccc;padd
 <h2>Evidence</h2><p>{html.escape(diag.explanation)}</p>
 <h2>Held-out verification poses</h2><p>geometry only: {acc(diag.before)}<br>final model: {acc(diag.after)}</p>
 <h2>Selection steps</h2>{steps}{_img(out_dir / "steps.png")}
+{twin_section}
 <h2>Noise yardstick</h2>{noise}{_img(out_dir / "noise.png")}
 <h2>Unexplained terms</h2>{''.join(shape_html) or '<p>none</p>'}
 <h2>Library candidates (first step)</h2>{candidates}

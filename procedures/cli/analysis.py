@@ -132,7 +132,8 @@ def diagnose(
     recording: Annotated[Path, typer.Argument(help="recording CSV (real or simulated)")],
     robot: RobotOption = None,
     as_json: Annotated[bool, typer.Option("--json", help="print one JSON object")] = False,
-    report: Annotated[Path | None, typer.Option("--report", help="write plots, tables and an HTML page here")] = None,
+    report: Annotated[Path | None, typer.Option("--report", help="write plots, tables, an HTML page and the digital "
+                                                "twin (sim_config.toml) here")] = None,
     cmm_sigma_mm: Annotated[float | None, typer.Option(
         "--cmm-sigma-mm", help="CMM sphere-centre uncertainty (mm, 1 sigma per coordinate): the noise yardstick",
     )] = None,
@@ -145,6 +146,10 @@ def diagnose(
     )] = None,
     alpha: Annotated[float, typer.Option(help="false-alarm rate on a recording without missing physics")] = 0.02,
     seed: Annotated[int, typer.Option(help="seed of the bootstrap")] = 0,
+    include_unconfirmed: Annotated[bool, typer.Option(
+        "--include-unconfirmed", help="keep the corrections of steps that made the held-out verify poses worse in "
+        "the compensation set (left out by default)",
+    )] = False,
 ) -> None:
     """Find the physics the geometric model leaves out: locate, name, model it, show the fit improve."""
     from hilcal.discovery.search import diagnose as run_diagnosis
@@ -164,16 +169,24 @@ def diagnose(
     rb = robot_or_fail(robot)
     try:
         rec = read_recording(recording, rb)
-        diag = run_diagnosis(rec, rb, alpha=alpha, seed=seed, cmm_sigma_mm=cmm_sigma_mm, pose_sigma=pose_sigma)
+        diag = run_diagnosis(rec, rb, alpha=alpha, seed=seed, cmm_sigma_mm=cmm_sigma_mm, pose_sigma=pose_sigma,
+                             include_unconfirmed=include_unconfirmed)
     except (RecordingError, IdentificationError, KinematicsError) as e:
         fail(str(e))
-    page = None
+    page, twin_json = None, None
     if report is not None:
         from hilcal.reports.diagnosis import write_report
+        from procedures.cli.twin import compare, write_twin
 
-        page = write_report(diag, report)
+        try:
+            twin = write_twin(diag, rec, rb, robot, report)
+            comparison = compare(twin, diag, rec, rb)
+        except (ValueError, RuntimeError) as e:
+            fail(f"the digital twin could not be made: {e}")
+        page = write_report(diag, report, comparison, twin.notes)
+        twin_json = comparison.to_json()
     if as_json:
-        print(json.dumps(diag.to_json(), indent=2))
+        print(json.dumps({**diag.to_json(), **({"twin": twin_json} if twin_json is not None else {})}, indent=2))
         return
     out.print(f"[bold]effect:[/] {escape(diag.effect)}   [bold]effects:[/] {escape(', '.join(diag.effects) or 'none')}",
               markup=True)
@@ -190,11 +203,12 @@ def diagnose(
     out.print(diag.evidence, highlight=False, markup=False)
     if diag.steps:
         table = Table(title="selection steps")
-        for col in ("step", "group", "F", "p", "CV µm", "verify RMS mm", "removed"):
-            table.add_column(col, justify="left" if col in ("group", "removed") else "right")
+        for col in ("step", "group", "F", "p", "CV µm", "verify RMS mm", "held out", "removed"):
+            table.add_column(col, justify="left" if col in ("group", "held out", "removed") else "right")
         for s in diag.steps:
+            held = {None: "", True: "confirmed", False: "NOT confirmed"}[s.confirmed]
             table.add_row(str(s.index), s.key, f"{s.f_statistic:.1f}", f"{s.p_value:.3g}", f"{s.cv_rms_mm * 1000:.2f}",
-                          "" if s.verify is None else f"{s.verify.position_mm.rms:.4f}", ", ".join(s.removed))
+                          "" if s.verify is None else f"{s.verify.position_mm.rms:.4f}", held, ", ".join(s.removed))
         out.print(table)
     out.print(accuracy_table("verify poses (held out)", [("geometry only", diag.before), ("final model", diag.after)]))
     if diag.findings:
@@ -203,7 +217,8 @@ def diagnose(
     for finding in diag.findings[:5]:
         out.print(f"  - {finding.text}", highlight=False)
     if page is not None:
-        out.print(f"report: {page}")
+        out.print(comparison.sentence(), highlight=False, markup=False)
+        out.print(f"report: {page} (the digital twin: {report / 'sim_config.toml'})")
 
 
 def _pose_set(rb: Robot, recording: Path | None, design_name: str, seed: int) -> np.ndarray:
@@ -292,10 +307,40 @@ def simulate(
     errors: Annotated[str, typer.Option(help="errors TOML file or table2|table3|table4|table5|zero")] = "table2",
     noise_mm: Annotated[float, typer.Option("--noise-mm", help="CMM noise std per sphere coordinate, mm")] = 0.005,
     robot: RobotOption = None,
+    sim_config: Annotated[Path | None, typer.Option(
+        "--sim-config", help="simulator TOML (e.g. the digital twin `hilcal diagnose --report` writes): its robot "
+        "and rig replace --robot, --errors and --noise-mm")] = None,
 ) -> None:
     """Write a recording from the in-process simulated rig (32 D-optimal + 24 verification poses)."""
     if noise_mm < 0:
         fail("--noise-mm must be >= 0")
+    if sim_config is not None:
+        _simulate_config(sim_config, out_path, seed)
+        out.print(f"wrote {out_path}")
+        return
     rb = robot_or_fail(robot)
     write_simulated_recording(rb, out_path, seed, errors, noise_mm)
     out.print(f"wrote {out_path}")
+
+
+def _simulate_config(path: Path, out_path: Path, seed: int) -> None:
+    """`hilcal simulate --sim-config`: the configuration's robot and rig walked through the plan."""
+    import numpy as np
+
+    from hilcal.planning import design as dsg
+    from hilcal.recording import write_recording
+    from procedures.cli.simulated_recording import simulate_recording
+    from sim_devices.sim_config import SimConfigError, load_sim_config
+
+    try:
+        config = load_sim_config(path)
+    except SimConfigError as e:
+        fail(str(e))
+    rb = robot_or_fail(config.robot)
+    try:
+        rig = config.rig.rig_config(rb)
+    except (ValueError, OSError) as e:
+        fail(f"--sim-config {path}: {e}")
+    rng = np.random.default_rng(seed)
+    measure = dsg.factorial_exchange(rb, 32, rng).poses
+    write_recording(out_path, simulate_recording(rb, rig, measure, dsg.verification_poses(rb, 24, seed)))

@@ -22,6 +22,7 @@ from sim_devices.config_base import PerLeg, per_leg
 from sim_devices.config_base import Strict as _Strict
 from sim_devices.config_base import check_non_negative as _check_non_negative
 from sim_devices.rig.electric_config import ELECTRIC_EFFECT_NAMES, DriveComplianceConfig, MotorEncoderConfig
+from sim_devices.rig.table_config import LegTablesConfig
 from sim_devices.rig.unlisted_config import (
     PARTLY_LISTED_EFFECT_NAMES,
     SESSION_EFFECT_NAMES,
@@ -174,8 +175,12 @@ class OilColumnComplianceConfig(_Effect):
 EFFECT_NAMES = ("leg_compliance", "sensor_scale", "thermal_expansion", "joint_backlash", "oil_column_compliance")
 """The effects that the calibration tool's diagnosis has candidates for (its library)."""
 
+TABLE_EFFECT_NAMES = ("leg_tables",)
+"""The generic per-leg effect a twin learns (sim_devices.rig.table_config)."""
+
 ALL_EFFECT_NAMES = (
-    *EFFECT_NAMES, *UNLISTED_EFFECT_NAMES, *PARTLY_LISTED_EFFECT_NAMES, *SESSION_EFFECT_NAMES, *ELECTRIC_EFFECT_NAMES
+    *EFFECT_NAMES, *UNLISTED_EFFECT_NAMES, *PARTLY_LISTED_EFFECT_NAMES, *SESSION_EFFECT_NAMES, *ELECTRIC_EFFECT_NAMES,
+    *TABLE_EFFECT_NAMES,
 )
 
 
@@ -184,7 +189,8 @@ class EffectsConfig(_Strict):
 
     The first five are the diagnosis library's effects; the out-of-library and session effects are configured
     in sim_devices.rig.unlisted_config, the electric legs' (motor encoder, drive compliance) in
-    sim_devices.rig.electric_config. Any combination may be enabled: the rig adds their Δl.
+    sim_devices.rig.electric_config, the per-leg tables a twin learns in sim_devices.rig.table_config. Any
+    combination may be enabled: the rig adds their Δl.
     """
 
     leg_compliance: LegComplianceConfig = Field(default_factory=LegComplianceConfig)
@@ -200,6 +206,7 @@ class EffectsConfig(_Strict):
     zero_shift: ZeroShiftConfig = Field(default_factory=ZeroShiftConfig)
     motor_encoder: MotorEncoderConfig = Field(default_factory=MotorEncoderConfig)
     drive_compliance: DriveComplianceConfig = Field(default_factory=DriveComplianceConfig)
+    leg_tables: LegTablesConfig = Field(default_factory=LegTablesConfig)
 
     def active(self) -> tuple[str, ...]:
         """Names of the enabled effects, in ALL_EFFECT_NAMES order (library, out-of-library, session, electric)."""
@@ -262,13 +269,27 @@ def concealed_effect_config(effect_name: str, magnitude_scale: float, seed: int)
 
 
 class TemperatureConfig(_Strict):
-    """Leg (= ambient) temperature over the rig's clock: T(t) = T0 + drift t / 3600 + A sin(2 pi t / period)."""
+    """Leg (= ambient) temperature over the rig's clock: T(t) = T0 + drift t / 3600 + A sin(2 pi t / period), or a
+    recorded history (table_time_s, table_c: linear interpolation, held at the ends) that replaces the model."""
 
     t0_c: float = Field(default=21.0, description="temperature at t = 0, °C")
     drift_k_per_h: float = Field(default=1.0, description="linear drift, K/h")
     amplitude_k: float = Field(default=0.3, ge=0, description="amplitude of the periodic part, K")
     period_s: float = Field(default=5400.0, gt=0, description="period of the periodic part, s")
     sensor_noise_k: float = Field(default=0.05, ge=0, description="std of the temperature sensor noise, K")
+    table_time_s: list[float] | None = Field(default=None, description="rig clock of a recorded history, s")
+    table_c: list[float] | None = Field(default=None, description="leg temperature at those times, °C")
+
+    @model_validator(mode="after")
+    def _history(self) -> TemperatureConfig:
+        if (self.table_time_s is None) != (self.table_c is None):
+            raise ValueError("table_time_s and table_c go together")
+        if self.table_time_s is not None and self.table_c is not None:
+            if len(self.table_time_s) != len(self.table_c) or not self.table_time_s:
+                raise ValueError("table_time_s and table_c must have the same, non-zero length")
+            if np.any(np.diff(self.table_time_s) < 0):
+                raise ValueError("table_time_s must not decrease")
+        return self
 
 
 def random_temperature(seed: int) -> TemperatureConfig:
@@ -381,6 +402,15 @@ def load_errors(path_or_name: str | Path, robot: Robot | None = None) -> Geometr
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"errors file {path}: not valid TOML: {err}") from None
     return _errors_from_table(data, robot, f"errors file {path}")
+
+
+def errors_toml(errors: GeometryErrors, header: str = "") -> str:
+    """The errors as a TOML file that ``load_errors`` reads back: six ``[[legs]]`` with da_mm, db_mm, dl0_mm."""
+    lines = [f"# {line}" if line else "#" for line in header.splitlines()]
+    for leg in errors.legs:
+        lines += ["", "[[legs]]", f"da_mm = {[float(v) for v in leg.da_mm]!r}",
+                  f"db_mm = {[float(v) for v in leg.db_mm]!r}", f"dl0_mm = {float(leg.dl0_mm)!r}"]
+    return "\n".join(lines).lstrip("\n") + "\n"
 
 
 def random_errors(seed: int, sigma_mm: float) -> GeometryErrors:

@@ -52,7 +52,10 @@ def axial_leg_forces_kn(
 
 
 def leg_temperature_c(config: TemperatureConfig, time_s: float) -> float:
-    """True leg (= ambient) temperature: T0 + drift t / 3600 + A sin(2 pi t / period), °C."""
+    """True leg (= ambient) temperature: T0 + drift t / 3600 + A sin(2 pi t / period), °C, or the recorded history
+    interpolated at time_s (held at its ends)."""
+    if config.table_time_s is not None and config.table_c is not None:
+        return float(np.interp(time_s, config.table_time_s, config.table_c))
     return float(
         config.t0_c
         + config.drift_k_per_h * time_s / SECONDS_PER_HOUR

@@ -20,7 +20,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from hilcal.robot import Robot
-from sim_devices.rig import electric_physics, physics, unlisted_physics
+from sim_devices.rig import electric_physics, physics, table_physics, unlisted_physics
 from sim_devices.rig.config import RigConfig
 from sim_devices.rig.unlisted_config import TIME_DEPENDENT_EFFECTS
 
@@ -143,7 +143,7 @@ class SimulatedRig:
         motor-encoder legs home again (a new seeded trip point of each home switch)."""
         self._session_start_s = self._time_s
         self._session += 1
-        if {"local_heating", "motor_encoder"}.intersection(self._active_effects):
+        if {"local_heating", "motor_encoder", "leg_tables"}.intersection(self._active_effects):
             self._pose_cache = None
 
     @property
@@ -252,6 +252,14 @@ class SimulatedRig:
         )
         out.update(unlisted_physics.unlisted_corrections_mm(effects, state, leg_lengths))
         out.update(electric)
+        if effects.leg_tables.enabled:
+            u = (joints - self.b_true) / leg_lengths[:, None]
+            out["leg_tables"] = table_physics.table_corrections_mm(effects.leg_tables, table_physics.TableState(
+                stroke_mm=np.asarray(reported_mm, dtype=float) - self.robot.l0, forces_kn=forces,
+                session_time_s=self._time_s - self._session_start_s, temperature_c=self.true_temperature_c(),
+                session=self._session, direction=history[0], last_move_mm=history[1], base_directions=u,
+                platform_directions=u @ R,
+            ))
         return out
 
     def _solve_pose(

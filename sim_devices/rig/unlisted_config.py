@@ -93,5 +93,5 @@ seeds 0-2, ``python examples/unlisted_ratios.py --overlap --seeds 3``); only the
 SESSION_EFFECT_NAMES = ("zero_shift",)
 """Effects of recording in several sessions."""
 
-TIME_DEPENDENT_EFFECTS = frozenset({"thermal_expansion", "local_heating", "zero_shift"})
+TIME_DEPENDENT_EFFECTS = frozenset({"thermal_expansion", "local_heating", "zero_shift", "leg_tables"})
 """Effects whose Δl changes when only the rig's clock moves."""

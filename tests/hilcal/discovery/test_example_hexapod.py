@@ -46,9 +46,17 @@ def test_nothing_unphysical_and_the_residual_reaches_the_noise(diag):
     assert "thermal_expansion" in {c.name for c in diag.candidates if not c.applicable}
 
 
+SPURIOUS_SHIFT_MM = 0.0012
+"""Legs without a concealed shift may show one of about 1 µm (the noise is 1 µm per sphere coordinate and the
+ball-screw scale errors of legs 1, 2 and 5 sit at the detection limit): smaller than a third of the true ones."""
+
+
 def test_the_rehoming_step_between_sessions_is_found(diag):
     shift = diag.session_shift
-    assert set(shift.legs) == set(TRUE_ZERO_SHIFT_MM)
-    for leg, value in TRUE_ZERO_SHIFT_MM.items():
-        assert shift.shift_mm[leg - 1] == pytest.approx(value, abs=0.0012)
+    assert set(TRUE_ZERO_SHIFT_MM) <= set(shift.legs)
+    for leg in range(1, 7):
+        if leg in TRUE_ZERO_SHIFT_MM:
+            assert shift.shift_mm[leg - 1] == pytest.approx(TRUE_ZERO_SHIFT_MM[leg], abs=0.0012)
+        else:
+            assert abs(shift.shift_mm[leg - 1]) < SPURIOUS_SHIFT_MM
     assert shift.verify_without_shift.position_mm.rms < 0.6 * diag.after.position_mm.rms
