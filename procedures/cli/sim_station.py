@@ -29,7 +29,8 @@ SIM_ACCEPTANCE = AcceptanceSection(max_position_mm=0.05, rms_position_mm=0.02, m
 """Example limits of the simulated station, on the verification poses after calibration (the docs' example
 station's): the demo machine starts at about 1.9 mm and 0.06 deg and fails them, and calibrated meets them with
 its uncertainty (docs/certificate.md). No ISO 9283 limits: a run without `--acceptance iso9283` would leave them
-not tested. `hilcal run --sim --station FILE` uses FILE's [acceptance] instead."""
+not tested. They are the built-in paper robot's: a simulated station on another robot file (a small hexapod, a
+twin's machine) sets none. `hilcal run --sim --station FILE` uses FILE's [acceptance] instead."""
 
 
 @contextlib.contextmanager
@@ -42,6 +43,7 @@ def sim_station(sim_config: str | None, out_dir: Path, robot_path: str | None) -
         raise SimulatorStartError(str(e)) from e
     try:
         station = station_from_channels(channels, robot_path)
-        yield station.model_copy(update={"acceptance": SIM_ACCEPTANCE})
+        own_robot = robot_path is not None or channels.get("robot_path") is not None
+        yield station if own_robot else station.model_copy(update={"acceptance": SIM_ACCEPTANCE})
     finally:
         stop_sim_subprocess(proc)
