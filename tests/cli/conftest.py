@@ -21,3 +21,12 @@ def instant_plan(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("plans") / "default_plan_no_settle.json"
     save_plan(make_plan(default_robot(), 0, settle_s=0.0, timing=SIM_TIMING.timing()), path)
     return path
+
+
+@pytest.fixture(scope="session")
+def small_plan(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """12 measure and 6 verify poses, no settle wait: the sign-off tests' runs, which check the certificate, not the
+    calibration."""
+    path = tmp_path_factory.mktemp("plans") / "small_plan.json"
+    save_plan(make_plan(default_robot(), 0, n_measure=12, n_verify=6, settle_s=0.0, timing=SIM_TIMING.timing()), path)
+    return path

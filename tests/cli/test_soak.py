@@ -1,5 +1,6 @@
-"""The soak benchmark's short version: a few full runs under faults, judged as `benchmarks/bench_soak.py` judges
-them (no measurement lost or duplicated, no half-written parameter set, nothing commanded in a link gap)."""
+"""The soak benchmark's short version: full runs under faults, judged as `benchmarks/bench_soak.py` judges them (no
+measurement lost or duplicated, no half-written parameter set, nothing commanded in a link gap): a Modbus connection
+dropped in the upload and a CMM that falls silent or garbles its replies here, link gaps in test_soak_gaps.py."""
 
 from __future__ import annotations
 
@@ -15,22 +16,18 @@ from soak_runs import CONDITIONS, soak_run
 from tests.cli.sim_speed import INSTANT_SIM
 
 BY_NAME = {c.name: c for c in CONDITIONS}
-GAPS_PER_MIN = 60.0
-"""The near-instant run lasts seconds, not the minutes of the benchmark's: the link gaps (0.05-0.5 s of real time,
-as there) come three times as often, so the run still meets several."""
 
 
 @pytest.mark.timeout(900)
 @pytest.mark.parametrize(("condition", "seed", "link"), [
     ("modbus_drops", 1, "modbus"),  # the connection drops at the upload's first write
-    ("heartbeat_gaps", 2, None),
     ("cmm_faults", 3, None),
 ])
 def test_a_faulted_run_completes_with_nothing_lost(tmp_path, instant_plan, condition, seed, link):
     """The servo and the CMM work at once (tests/cli/sim_speed.py): every check counts what happened (rows,
     commands in a gap, holds), not how long it took."""
     run = soak_run(BY_NAME[condition], seed, tmp_path / "work", extra_sim_config=INSTANT_SIM,
-                   gaps_per_min=GAPS_PER_MIN, extra_run_args=("--plan", str(instant_plan)))
+                   extra_run_args=("--plan", str(instant_plan)))
     assert run.completed, run
     assert (run.rows, run.lost, run.duplicated) == (83, 0, 0)
     assert run.live_set == "new", "the uploaded set is live, whole"
@@ -38,5 +35,3 @@ def test_a_faulted_run_completes_with_nothing_lost(tmp_path, instant_plan, condi
     assert run.verify_after_max_mm is not None and run.verify_after_max_mm <= 0.05
     if link is not None:
         assert run.holds.get(link, 0) >= 1, f"the {link} fault happened and was ridden through: {run.holds}"
-    if condition == "heartbeat_gaps":
-        assert run.gaps >= 3, run

@@ -1,0 +1,86 @@
+"""`hilcal run --sim --panel` in headless Chromium, watched live in two browsers, paused, aborted from the page and
+resumed (the helpers in panel_support.py).
+
+The simulator runs as `make demo` does (a run takes ~40 s here; near-instant dynamics make the run CPU-bound,
+which on a 2-core machine shared with Chromium costs heartbeats): the test needs a run slow enough to pause in its
+middle. On a loaded machine the controller's 100 ms heartbeat can be lost, which ends a run with code 3 and its
+journal kept; the test then resumes it as an operator would (at most twice), since riding such gaps out is the
+engine's job (issue 11), not the panel's.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+from tests.cli.browser_support import chromium, free_port, require_chromium, text, wait_for
+from tests.cli.panel_support import collect_latency, done_count, journal_rows, page_view, start_panel_run, stop
+
+
+@pytest.fixture(autouse=True)
+def _browser_present():
+    require_chromium()
+
+
+@pytest.mark.timeout(900)
+def test_live_run_in_two_browsers_then_abort_from_the_page_and_resume(tmp_path):
+    out = tmp_path / "run"
+    port = free_port()
+    url = f"http://127.0.0.1:{port}/"
+    proc = None
+    try:
+        with chromium() as first, chromium() as second:  # started first: their start-up loads the CPU
+            proc, log = start_panel_run(tmp_path, port, "--sim", "--yes", "--out", str(out))
+            first.get(url)
+            done = wait_for(lambda p=proc: (done_count(first) >= 3 and done_count(first)) or p.poll() is not None, 120,
+                            "three poses done on the page")
+            assert proc.poll() is None, log.read_text()
+            assert re.fullmatch(r"(measure|verify) pose \d+ of (35|24)", text(first, "current-pose"))
+            (journaled,) = journal_rows(out, "SELECT COUNT(*) FROM measurements")[0]
+            assert done <= journaled, "the page cannot be ahead of the journal"
+            # 32 design poses with one of them measured 3 more times, then 24 verify poses
+            assert len(first.find_elements("css selector", "#plan-table tr")) == 1 + (32 + 3) + 24
+
+            second.get(url)
+            first.find_element("id", "pause").click()
+            for driver in (first, second):
+                wait_for(lambda d=driver: text(d, "status") == "paused" and "Continue the run" in
+                         text(d, "question-text"), 30, "the pause question in both browsers")
+            assert page_view(first) == page_view(second)
+            paused_view = page_view(first)
+            assert paused_view["points"] == done_count(first) >= done
+            second.refresh()
+            wait_for(lambda: text(second, "status") == "paused" and text(second, "question-text"), 30,
+                     "the reloaded page")
+            assert page_view(second) == paused_view
+            collect_latency(first)
+
+            second.find_element("id", "question-no").click()  # "Abort run"
+            assert proc.wait(60) == 3, log.read_text()
+        assert f"--resume {journal_rows(out, 'SELECT run_id FROM run')[0][0]}" in log.read_text()
+        (run_id, status), = journal_rows(out, "SELECT run_id, status FROM run")
+        assert status == "interrupted"
+        answers = [json.loads(r[0]) for r in journal_rows(out, "SELECT data_json FROM events WHERE kind = "
+                                                           "'operator_answer' AND data_json LIKE '%pause%'")]
+        assert [(a["answer"], a["via"]) for a in answers] == [(False, "page")]
+        kept = journal_rows(out, "SELECT COUNT(*) FROM measurements")[0][0]
+        assert kept >= paused_view["points"]
+
+        port = free_port()
+        with chromium() as third:
+            proc, log = start_panel_run(tmp_path, port, "--resume", run_id, "--yes", "--out", str(out))
+            third.get(f"http://127.0.0.1:{port}/")
+            wait_for(lambda: done_count(third) >= kept, 60, "the resumed run's journaled poses on the page")
+            assert "resumed" in text(third, "run-title")
+        code = proc.wait(240)  # the browser is closed; the run goes on
+        assert code == 0, log.read_text()
+        rows = journal_rows(out, "SELECT phase, pose_index FROM measurements")
+        assert len(rows) == len(set(rows)) == (32 + 3) + 24 + 24
+        assert json.loads((out / "report.json").read_text())["status"] == "complete"
+    finally:
+        if proc is not None:
+            stop(proc)
+
+
