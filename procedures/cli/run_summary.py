@@ -76,11 +76,17 @@ def uploaded_lines(report: Mapping[str, Any]) -> list[str]:
         lines.append("and the compensation block, one transaction with the geometry"
                      + {True: "; read back: matches", False: "; read back: DIFFERS"}.get(
                          record.get("compensation_readback_match"), ""))
+    listed = False
     for key, label in (("corrected", "corrected"), ("not_corrected", "not corrected")):
         items = physics.get(key) if isinstance(physics.get(key), list) else []
         names = [_effect_name(c) for c in items]
         if names:
             lines.append(f"{label}: " + ", ".join(names))
+            listed = True
+    noise = _number(physics.get("noise_mm"))
+    if physics.get("enabled") and not listed:
+        lines.append("physics: nothing beyond the geometry" + ("" if noise is None else
+                                                                 f" (noise yardstick {noise * 1000:.1f} µm)"))
     return lines
 
 
