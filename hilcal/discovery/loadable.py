@@ -30,7 +30,7 @@ from hilcal.discovery.corrections import CompensationSet, Term
 from hilcal.discovery.result import Diagnosis
 from hilcal.error_models import GEOMETRIC_42
 from hilcal.kinematics import Geometry, forward_kinematics
-from hilcal.leg_compensation import N_LEGS, REFERENCE_TEMPERATURE_C, LegCompensation
+from hilcal.leg_compensation import N_LEGS, REFERENCE_TEMPERATURE_C, SCALAR_FIELDS, LegCompensation
 from hilcal.metrics import AccuracySummary
 from hilcal.recording import Recording
 from hilcal.robot import Robot
@@ -170,8 +170,7 @@ def _tables(terms: list[Term], delta: np.ndarray, live: LegCompensation, max_poi
 
 
 def _zero_scalars() -> dict[str, np.ndarray]:
-    return {name: np.zeros(N_LEGS) for name in ("scale_ppm", "backlash_mm", "compliance_mm_per_kn",
-                                                "compliance_mm_per_kn_m", "thermal_ppm_per_k")}
+    return {name: np.zeros(N_LEGS) for name in SCALAR_FIELDS}
 
 
 def _named(diag: Diagnosis, effect: str) -> Any:
