@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from hilcal.protocols.compensation import block_from_words
+from procedures.records import Records
 from tests.cli.sim_speed import INSTANT_SIM
 
 pytestmark = pytest.mark.timeout(300)
@@ -79,6 +80,11 @@ def test_the_run_corrects_the_faults_it_finds_and_proves_it_at_the_machine(runs)
     held = block_from_words(words)
     assert held["scale_ppm"][0] == pytest.approx(block["scale_ppm"][0], abs=1e-3), "the controller holds the block"
     assert report["upload"]["record"]["compensation_readback_match"] is True
+    with Records(run.parent / "on.sqlite") as db:  # the records keep each transducer's reading error, for drift
+        kept = db.run_parameters(report["run_id"])
+    stroke_range_mm = 4800.0 - 3800.0  # the robot file's leg limits
+    assert kept["leg1_reads_long_at_full_stroke_mm"][0] == pytest.approx(3000 / 1.003 * 1e-6 * stroke_range_mm,
+                                                                         abs=0.02)
 
 
 def test_the_approval_screen_opens_with_the_findings(runs) -> None:
