@@ -258,18 +258,34 @@ def adaptive_summary(run: AdaptiveRun, result: Any, reference: CalibrationPlan, 
     return adaptive_section(result.adaptive, run.to_json(), measured, plans)
 
 
-def progress_observer(bar: Any, task: Any, after_measure: int) -> Callable[[str, dict], None]:
-    """An engine observer for the terminal: each decision as a line above the progress bar, whose total follows the
-    forecast (rows so far, the rows forecast, then the verify phases' poses)."""
-    from procedures.messages import Checkpoint
+def start_form(plan: CalibrationPlan, robot: Robot, timing: MotionTiming, options: dict[str, Any],
+               acceptance_poses: np.ndarray | None, choosable: bool
+               ) -> tuple[dict[str, Any], Callable[[dict[str, Any]], dict[str, Any]]]:
+    """The plan on the panel's start form (a new run's can change there) and the check of a choice made there."""
+    current = options.get("adaptive") or {}
+    fixed = estimate_plan(plan, robot, timing, acceptance_poses=acceptance_poses)
+    shown = {"choosable": choosable, "adaptive": bool(options.get("adaptive")), "target_mm": current.get("target_mm"),
+             "max_minutes": current.get("max_minutes"), "fixed_minutes": fixed.total_s / 60.0}
 
-    def observe(kind: str, data: dict) -> None:
-        msg = data.get("message")
-        if kind != "message" or not isinstance(msg, Checkpoint) or msg.label != PROGRESS_LABEL:
-            return
-        shown = msg.data or {}
-        ahead = 0 if shown.get("stop") else ((shown.get("forecast") or {}).get("n_rows") or 0)
-        bar.update(task, total=shown["n_rows"] + ahead + after_measure)
-        bar.console.print(progress_line(shown), highlight=False, markup=False, soft_wrap=True)
+    def check(choice: dict[str, Any]) -> dict[str, Any]:
+        if not choice["adaptive"]:
+            return {"adaptive": False}
+        chosen = adaptive_options(choice.get("target_mm"), choice.get("max_minutes"))
+        adaptive_budget(plan, robot, timing, chosen, acceptance_poses)
+        return {"adaptive": True, **chosen.model_dump()}
 
-    return observe
+    return shown, check
+
+
+def apply_start_plan(choice: dict[str, Any], journal: Any, options: dict[str, Any], out_dir: Path) -> bool:
+    """The plan chosen on the start form into the journal's options (before anything moved); True if it changed."""
+    new = {**options, "adaptive": None if not choice["adaptive"] else
+           {k: v for k, v in choice.items() if k != "adaptive"}}
+    if new == options:
+        return False
+    journal.set_options(new)
+    names = ("plan.json", "reference_plan.json")
+    source, target = names if new["adaptive"] else names[::-1]
+    if (out_dir / source).exists():
+        (out_dir / source).replace(out_dir / target)
+    return True

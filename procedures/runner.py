@@ -19,7 +19,7 @@ import json
 import logging
 import shlex
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +27,6 @@ from typing import Any
 
 import numpy as np
 import structlog
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from hilcal.metrics import AccuracySummary, pose_errors
 from hilcal.planning.machine_time import TimeEstimate
@@ -40,7 +39,8 @@ from procedures.adaptive import (
     AdaptiveRun,
     adaptive_run,
     adaptive_summary,
-    progress_observer,
+    apply_start_plan,
+    start_form,
     time_range_json,
     write_executed_plan,
 )
@@ -65,6 +65,7 @@ from procedures.engine import Engine, RunInterrupted
 from procedures.journal import Journal
 from procedures.link_guard import links_summary
 from procedures.plan import CalibrationPlan, PlanError, estimate_plan, load_plan, make_plan, save_plan
+from procedures.run_progress import adaptive_lines, combine_observers, terminal_progress
 from procedures.timing import TimingSection
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NOT_ACCEPTED = 0, 2, 3, 4
@@ -102,31 +103,6 @@ def configure_logs(out_dir: Path) -> None:
     )
 
 
-@contextlib.contextmanager
-def _progress(total: int, done: int) -> Iterator[tuple[Callable[[dict], None], Progress, Any]]:
-    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    with Progress(*columns, transient=False) as progress:
-        task = progress.add_task("measuring poses", total=total, completed=done)
-
-        def advance(row: dict) -> None:
-            progress.update(task, advance=1, description=f"{row['phase']} pose {row['index'] + 1}")
-
-        yield advance, progress, task
-
-
-def _observers(*observers: Callable[[str, dict], None] | None) -> Callable[[str, dict], None] | None:
-    """One engine observer calling each given one in turn (the first's KeyboardInterrupt, a panel's pause, wins)."""
-    chosen = [o for o in observers if o is not None]
-    if len(chosen) <= 1:
-        return chosen[0] if chosen else None
-
-    def observe(kind: str, data: dict) -> None:
-        for o in chosen:
-            o(kind, data)
-
-    return observe
-
-
 def _per_pose(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     meas = np.array([r["meas"] for r in rows])
     cmd = np.array([r["cmd"] for r in rows])
@@ -157,10 +133,11 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
     if options.adaptive is not None:  # the best case at first; each forecast updates it
         total = max(done, journal.step("adaptive_best_rows") or 0) + after_measure
     try:
-        with _progress(total, done) as (advance, bar, task):
-            shown = None if options.adaptive is None else progress_observer(bar, task, after_measure)
+        with terminal_progress(total, done) as (advance, bar, task):
+            shown = None if options.adaptive is None else adaptive_lines(bar, task, after_measure)
             engine = Engine(devices, journal, confirm=confirm, on_measure=advance,
-                            move_timeout_s=devices.station.motion.move_timeout_s, observer=_observers(observer, shown),
+                            move_timeout_s=devices.station.motion.move_timeout_s,
+                            observer=combine_observers(observer, shown),
                             links=devices.station.links, approach_mm=plan.approach_mm, on_prompt=on_prompt)
             result: ProcedureResult = engine.run(calibration_procedure(plan, robot, options))
     except RunInterrupted as e:
@@ -391,14 +368,7 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
                 timing = TimingSection.model_validate(options.get("timing", {}))
                 test = AcceptanceTest.model_validate(options["acceptance"]) if options.get("acceptance") else None
                 adaptive = _adaptive_for(plan, robot, timing, options, test)
-            if adaptive is not None:
-                range_json = time_range_json(adaptive)
-                journal.set_step("adaptive_best_rows", range_json["best_rows"])
-                if req.on_adaptive_estimate is not None:
-                    req.on_adaptive_estimate(adaptive, range_json, timing)
-            elif req.on_estimate is not None:
-                route = None if test is None else test.route()[0]
-                req.on_estimate(plan, estimate_plan(plan, robot, timing.timing(), acceptance_poses=route), timing)
+            shown = _announce(req, journal, plan, robot, timing, test, adaptive)
             if options["sim"]:
                 if req.sim_station is None:
                     raise ValueError("this run uses the simulated devices (--sim), but no simulator was given")
@@ -416,23 +386,31 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
         except DeviceOpenError as e:
             return RunExit(EXIT_INTERRUPTED, run_id, f"cannot open the station's devices: {e}; the journal is kept, "
                            f"continue with: {resume_command(run_id, req.out_dir)}")
-        run_options = RunOptions(estimator=options["estimator"], force=bool(options["force"]), acceptance=test,
-                                 physics=bool(options.get("physics", True)), adaptive=adaptive)
         operator = req.operator or options.get("operator") or settings.operator
         if panel is not None:
             from procedures.panel.control import NotStarted
 
+            acceptance_poses = 0 if test is None else 5 * test.cycles
             panel.run_opened(run_id=run_id, plan=plan, robot=robot, out_dir=req.out_dir, journal=journal,
-                             devices=devices, resumed=req.resume is not None,
-                             acceptance_poses=0 if test is None else 5 * test.cycles)
+                             devices=devices, resumed=req.resume is not None, acceptance_poses=acceptance_poses,
+                             adaptive=shown)
+            route = None if test is None else test.route()[0]
             try:
-                operator = panel.wait_start() or operator
+                operator = panel.wait_start(*start_form(plan, robot, timing.timing(), options, route,
+                                                        req.resume is None)) or operator
             except (NotStarted, KeyboardInterrupt):
                 result = RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} not started by the operator; start it "
                                  f"later with: {resume_command(run_id, req.out_dir)}")
                 panel.finished(code=result.code, message=result.message, status="not started", out_dir=None,
                                report=None)
                 return result
+            if panel.start_plan is not None and apply_start_plan(panel.start_plan, journal, options, req.out_dir):
+                options = journal.run_info()["options"]
+                adaptive = _adaptive_for(plan, robot, timing, options, test)
+                panel.view.show_plan(plan, robot, acceptance_poses,
+                                     _announce(req, journal, plan, robot, timing, test, adaptive))
+        run_options = RunOptions(estimator=options["estimator"], force=bool(options["force"]), acceptance=test,
+                                 physics=bool(options.get("physics", True)), adaptive=adaptive)
         _record_start(recorder, journal, req, run_id, started_at, robot, plan, operator, run_options.estimator)
         signoff = SignoffContext(operator, settings, test, bool(options["sim"]), options["robot_path"],
                                  station.cmm.url)
@@ -450,6 +428,21 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
             panel.finished(code=result.code, message=result.message, status=journal.run_info()["status"],
                            out_dir=req.out_dir, report=report)
         return result
+
+
+def _announce(req: RunRequest, journal: Journal, plan: CalibrationPlan, robot: Robot, timing: TimingSection,
+              test: AcceptanceTest | None, adaptive: AdaptiveRun | None) -> dict | None:
+    """Before motion: print the estimate (an adaptive run's range); the adaptive run's options and range."""
+    if adaptive is None:
+        if req.on_estimate is not None:
+            route = None if test is None else test.route()[0]
+            req.on_estimate(plan, estimate_plan(plan, robot, timing.timing(), acceptance_poses=route), timing)
+        return None
+    range_json = time_range_json(adaptive)
+    journal.set_step("adaptive_best_rows", range_json["best_rows"])
+    if req.on_adaptive_estimate is not None:
+        req.on_adaptive_estimate(adaptive, range_json, timing)
+    return {**adaptive.options.model_dump(), **range_json}
 
 
 def _adaptive_for(plan: CalibrationPlan, robot: Robot, timing: TimingSection, options: dict,
