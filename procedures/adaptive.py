@@ -255,7 +255,11 @@ def adaptive_summary(run: AdaptiveRun, result: Any, reference: CalibrationPlan, 
                                       np.array([r["cmd"] for r in rows])).position_mm.max
     plans = {"reference_sha256": reference.sha256(),
              "executed_sha256": None if executed is reference else executed.sha256()}
-    return adaptive_section(result.adaptive, run.to_json(), measured, plans)
+    physics = result.physics
+    effects = None if physics is None or physics.diagnosis is None else {
+        "effects": list(physics.diagnosis.effects),
+        "predicted_max_mm": None if physics.predicted_with is None else physics.predicted_with.position_mm.max}
+    return adaptive_section(result.adaptive, run.to_json(), measured, plans, effects)
 
 
 def start_form(plan: CalibrationPlan, robot: Robot, timing: MotionTiming, options: dict[str, Any],

@@ -223,8 +223,8 @@ def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptio
     if adaptive is not None and adaptive["stop"]["kind"] == "not_identifiable":
         yield from return_home(geom, pose, robot, plan)
         yield m.Disable()
-        result = ProcedureResult("not identifiable", recording=recording_from_rows(rows, robot),
-                                 chosen=options.estimator, before_params=before, adaptive=adaptive)
+        result = ProcedureResult("not identifiable", chosen=options.estimator, before_params=before,
+                                 adaptive=adaptive)
         result.problems = [adaptive["stop"]["sentence"]]
         yield m.Checkpoint("not_identifiable", {"problems": result.problems})
         return result

@@ -51,7 +51,6 @@ from procedures.calibration_procedure import (
     ProcedureResult,
     RunOptions,
     calibration_procedure,
-    recording_from_rows,
     to_parameter_set,
 )
 from procedures.certificate import (
@@ -147,7 +146,8 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
         return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} stopped: {e}. The journal is kept; continue with: "
                        f"{resume_command(run_id, out_dir)}")
     pre_rows = journal.measurements(PRE_PHASES)
-    write_recording(out_dir / "recording.csv", recording_from_rows(pre_rows, robot))
+    if result.recording is not None:  # a run stopped as not identifiable may have too few rows for a recording
+        write_recording(out_dir / "recording.csv", result.recording)
     route = None if options.acceptance is None else options.acceptance.route()[0]
     reference = plan
     if options.adaptive is not None:

@@ -33,7 +33,7 @@ from hilcal.kinematics import Geometry, inverse_kinematics
 from hilcal.planning.candidates import CandidateSet, candidate_set, designable_robot, library_columns, library_variables
 from hilcal.planning.criteria import d_gain, ds_gain, v_gain
 from hilcal.planning.design import factorial_exchange, pose_jacobians
-from hilcal.planning.machine_time import MotionRules, MotionTiming, move_costs, repeatable_pose
+from hilcal.planning.machine_time import MotionRules, MotionTiming, format_minutes, move_costs, repeatable_pose
 from hilcal.planning.prediction import (
     Draws,
     PoseNoise,
@@ -450,7 +450,7 @@ def decide(problem: AdaptiveProblem, state: AdaptiveState, memo: ChoiceMemo | No
         elif state.minimum is not None and not state.minimum.met:
             why = f"{why}; the diagnosis still needs: {'; '.join(state.minimum.missing)}"
         return Decision(choice, None, state.prediction, why)
-    budget = f"the measure budget of {s.max_measure_s / 60:.1f} min"
+    budget = f"the measure budget of {format_minutes(s.max_measure_s)}"
     if state.prediction is None:
         if state.n_unresolved:
             names = state.unidentifiable

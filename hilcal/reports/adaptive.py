@@ -28,12 +28,14 @@ def _min(seconds: float) -> str:
 
 
 def adaptive_section(decision: Mapping[str, Any], run: Mapping[str, Any], measured_max_mm: float | None,
-                     plans: Mapping[str, str | None]) -> dict[str, Any]:
+                     plans: Mapping[str, str | None], physics: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """report.json's `adaptive`: the stop (kind, sentence, prediction), rows and machine time against the fixed plan,
     and whether the verification stayed within the prediction and the target.
 
     decision: ``procedures.adaptive.progress`` of the stop; run: ``AdaptiveRun.to_json()``; measured_max_mm: the
-    verify-after maximum position error (None when the run did not verify); plans: reference and executed plan hashes.
+    verify-after maximum position error (None when the run did not verify); plans: reference and executed plan hashes;
+    physics: the run's physics step ({effects, predicted_max_mm}: what its diagnosis named and the held-out maximum it
+    predicted with them), None without one.
     """
     stop = decision["stop"]
     prediction = stop.get("prediction")
@@ -54,6 +56,7 @@ def adaptive_section(decision: Mapping[str, Any], run: Mapping[str, Any], measur
         "verification": {"measured_max_mm": measured_max_mm, "within_prediction": held, "target_met": target_met},
         "unidentifiable": stop.get("unidentifiable", []), "screening": stop.get("screening"),
         "minimum": decision.get("minimum"), "settings": run.get("settings"), "plans": dict(plans),
+        "physics": None if physics is None else dict(physics),
     }
     section["summary"] = summary(section)
     return section
@@ -66,9 +69,7 @@ def summary(s: Mapping[str, Any]) -> str:
     cost = (f"after {s['n_rows']} rows ({_min(s['measure_time_s'])} of machine time"
             + ("" if fraction is None else f", {fraction:.2f} x the fixed plan's measure phase") + ")")
     if kind == "not_identifiable":
-        names = ", ".join(s.get("unidentifiable") or []) or "no noise estimate yet"
-        return (f"Not identifiable: the measure budget of {_min(s['measure_budget_s'])} ended {cost} before the rows "
-                f"identified every parameter (unresolved: {names}). Nothing was identified or uploaded.")
+        return f"Not identifiable {cost}: {s['sentence']}. Nothing was identified or uploaded."
     lead = {"target": f"Target reached {cost}", "converged": f"The prediction stopped improving {cost}",
             "budget": f"Budget reached {cost}: the accuracy proven by then"}.get(kind, f"Stopped ({kind}) {cost}")
     predicted = ("no prediction" if p is None else
@@ -77,6 +78,13 @@ def summary(s: Mapping[str, Any]) -> str:
     target = s.get("target_mm")
     if target is not None:
         predicted += f", target {_um(target)}"
+    screening, physics = s.get("screening") or {}, s.get("physics") or {}
+    if screening.get("suspected"):  # the bound is the geometric model's: its residuals hold the missing physics
+        predicted += ("; the screening found signs of missing physics, so this bound is the geometric model's and the "
+                      "rows went on for the diagnosis")
+        if physics.get("effects"):
+            predicted += (f"; the run's diagnosis named {', '.join(physics['effects'])}, and with them predicted "
+                          f"{_um(physics.get('predicted_max_mm'))} on the held-out verify poses")
     if v["measured_max_mm"] is None:
         return f"{lead}: {predicted}; the verification after the upload was not measured."
     held = {True: "at or below the predicted bound", False: "ABOVE the predicted bound"}.get(v["within_prediction"],
