@@ -13,8 +13,8 @@ from hilcal.planning.forecast import forecast, time_range
 from hilcal.planning.machine_time import MotionRules, MotionTiming, estimate_route
 from hilcal.planning.sequential import (
     AdaptiveSettings,
-    ChoiceMemo,
     AdaptiveState,
+    ChoiceMemo,
     adaptive_problem,
     decide,
     next_pose,
