@@ -234,11 +234,15 @@ def check_route_on(plan: CalibrationPlan, rows: np.ndarray, robot: Robot) -> Non
 
 
 def write_executed_plan(journal: Any, out_dir: Path, plan: CalibrationPlan, run_id: str) -> CalibrationPlan | None:
-    """Once the measure phase has stopped (its journal checkpoint): plan.json, the plan as executed; else None."""
+    """Once the measure phase has stopped (its journal checkpoint): plan.json, the plan as executed; else None. With
+    fewer than 8 rows no plan file is written; the plan returned then serves the time estimate only."""
     stop = journal.step(f"checkpoint:{STOP_LABEL}")
-    executed = None if stop is None else executed_plan(plan, stop["poses"], run_id)
-    if executed is not None:
-        save_plan(executed, out_dir / "plan.json")
+    if stop is None:
+        return None
+    executed = executed_plan(plan, stop["poses"], run_id)
+    if executed is None:
+        return plan.model_copy(update={"measure_poses": stop["poses"], "order": "adaptive"})
+    save_plan(executed, out_dir / "plan.json")
     return executed
 
 
@@ -254,7 +258,8 @@ def adaptive_summary(run: AdaptiveRun, result: Any, reference: CalibrationPlan, 
         measured = AccuracySummary.of(np.array([r["meas"] for r in rows]),
                                       np.array([r["cmd"] for r in rows])).position_mm.max
     plans = {"reference_sha256": reference.sha256(),
-             "executed_sha256": None if executed is reference else executed.sha256()}
+             "executed_sha256": None if executed is reference or len(executed.measure_poses) < 8 else
+             executed.sha256()}
     physics = result.physics
     effects = None if physics is None or physics.diagnosis is None else {
         "effects": list(physics.diagnosis.effects),
