@@ -179,7 +179,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--floor-rigs", type=int, default=10, help="error-free rigs for the floor")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="runs at once")
     parser.add_argument("--json", type=Path, help="also write the raw results here")
+    parser.add_argument("--quick", action="store_true", help="two seeds per set, one physics rig, four floor rigs")
     args = parser.parse_args(argv)
+    if args.quick:
+        args.seeds, args.physics_seeds, args.floor_rigs = 2, 1, 4
     command = ("python benchmarks/studies/adaptive_run_study.py" + "".join(
         f" --{k.replace('_', '-')} {v}" for k, v in (("seeds", args.seeds), ("physics_seeds", args.physics_seeds),
                                                      ("floor_rigs", args.floor_rigs)) if v != parser.get_default(k)))
