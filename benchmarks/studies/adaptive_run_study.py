@@ -16,7 +16,8 @@ pose) with no settle wait, so machine times are those of a real station while th
 instantly (the wall clock of a run is its computing and protocol work).
 
 Run ``python benchmarks/studies/adaptive_run_study.py [--seeds N] [--physics-seeds N] [--floor-rigs N] [--jobs N]``;
-it writes docs/adaptive_run_study.md (and, with --json, the raw results).
+it writes docs/adaptive_run_study.md and the raw results, docs/adaptive_run_study.json (from which ``--from-json``
+writes the doc again).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from sim_devices.rig.config import random_errors
 
 ROOT = Path(__file__).resolve().parents[2]
 DOC_PATH = ROOT / "docs" / "adaptive_run_study.md"
+JSON_PATH = ROOT / "docs" / "adaptive_run_study.json"
 SETS = ("table2", "table3", "table4", "table5", "random")
 SEED_STRIDE = 100
 FLOOR_SEED = 20_000
@@ -178,9 +180,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--physics-seeds", type=int, default=5, help="rigs with concealed physics")
     parser.add_argument("--floor-rigs", type=int, default=10, help="error-free rigs for the floor")
     parser.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="runs at once")
-    parser.add_argument("--json", type=Path, help="also write the raw results here")
+    parser.add_argument("--json", type=Path, default=JSON_PATH, help="where the raw results go (default: "
+                        "docs/adaptive_run_study.json, from which --from-json writes the doc again)")
     parser.add_argument("--quick", action="store_true", help="two seeds per set, one physics rig, four floor rigs")
+    parser.add_argument("--from-json", type=Path, help="write the doc again from the raw results of an earlier run")
     args = parser.parse_args(argv)
+    if args.from_json:
+        saved = json.loads(args.from_json.read_text())
+        DOC_PATH.write_text(write_doc(saved["results"], saved["context"]))
+        return 0
     if args.quick:
         args.seeds, args.physics_seeds, args.floor_rigs = 2, 1, 4
     command = ("python benchmarks/studies/adaptive_run_study.py" + "".join(
@@ -211,8 +219,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     context = {"command": command, "elapsed_s": elapsed, "jobs": args.jobs, "floor_mm": floor_mm,
                "floors_mm": floors, "target_mm": target_mm, "seeds": args.seeds, "physics_seeds": args.physics_seeds,
                "timing": {**TimingSection().model_dump(), "settle_s": 0.0}}
-    if args.json:
-        args.json.write_text(json.dumps({"context": context, "floor": floor_runs, "results": results}, indent=1))
+    args.json.write_text(json.dumps({"context": context, "floor": floor_runs, "results": results}, indent=1) + "\n")
     DOC_PATH.write_text(write_doc(results, context))
     print(f"wrote {DOC_PATH} ({elapsed:.0f} s)", file=sys.stderr)
     return 0
