@@ -157,8 +157,8 @@ def progress(run: AdaptiveRun, state: Any, decision: Any) -> dict[str, Any]:
     remaining = rest_range = rest = None
     if decision.stop is None:
         if target is not None and state.noise is None:  # no noise known yet: the best case and the budget
-            best = forecast(problem, state, best_case=True, memo=run.memo)
-            rest_range = [best.remaining_s, max(problem.settings.max_measure_s - state.elapsed_s, best.remaining_s)]
+            rest = forecast(problem, state, best_case=True, memo=run.memo)
+            rest_range = [rest.remaining_s, max(problem.settings.max_measure_s - state.elapsed_s, rest.remaining_s)]
         else:
             rest = forecast(problem, state, memo=run.memo)
             remaining = rest.remaining_s
