@@ -1,6 +1,8 @@
 """The calibration procedure as a plain generator of messages (see `procedures.messages`).
 
-Measure the plan's measurement and verification poses on the uncalibrated controller, identify (LS and
+Measure the plan's measurement poses (or, for an adaptive run, the poses ``hilcal.planning.sequential`` chooses one
+at a time until the accuracy is proven: ``procedures.adaptive``) and verification poses on the uncalibrated
+controller, identify (LS and
 L-infinity on the same rows), diagnose the missing physics (``procedures.physics``), check plausibility, compensate
 (full geometry, or best leg offsets, with the compensation block where the controller has one), upload after
 confirmation, then re-measure the verification poses on the compensated controller and, if asked, run the ISO 9283
@@ -28,6 +30,7 @@ from hilcal.recording import Recording, recording_from_arrays
 from hilcal.robot import Robot
 from procedures import messages as m
 from procedures.acceptance import ACCEPTANCE_PHASE, AcceptanceTest
+from procedures.adaptive import PROGRESS_LABEL, STOP_LABEL, AdaptiveRun, check_route_on, progress
 from procedures.approval import approval_detail
 from procedures.physics import ControllerInfo, PhysicsDecision, decide
 from procedures.plan import CalibrationPlan, return_waypoints, waypoints
@@ -48,6 +51,8 @@ class RunOptions:
     acceptance: AcceptanceTest | None = None
     physics: bool = True
     """Diagnose the run's own recording and upload what it finds with the geometry (False: the geometry alone)."""
+    adaptive: AdaptiveRun | None = None
+    """Measure adaptively (the plan's measure poses are then only the reference and candidates); None: the plan."""
 
 
 @dataclass
@@ -65,6 +70,8 @@ class ProcedureResult:
     physics: PhysicsDecision | None = None
     block: CompensationBlock | None = None
     """The compensation block uploaded with the geometry (None: the controller kept its own)."""
+    adaptive: dict | None = None
+    """An adaptive run's last decision (``procedures.adaptive.progress``: the stop, its prediction, the rows)."""
 
 
 def controller_geometry(params: ParameterSet) -> ControllerGeometry:
@@ -165,6 +172,37 @@ def _measure_phase(phase: str, poses: np.ndarray, geom: ControllerGeometry, pose
     return pose
 
 
+def _adaptive_measure_phase(run: AdaptiveRun, geom: ControllerGeometry, pose: np.ndarray, plan: CalibrationPlan
+                            ) -> Generator[Any, Any, tuple[np.ndarray, dict]]:
+    """Ask for the next pose, visit and measure it, update; until the stop. The journaled rows are replayed first,
+    so a resumed run is in the same state and makes the same next choices. Returns the pose and the last decision."""
+    from hilcal.planning.sequential import decide, replay, update
+
+    problem = run.problem
+    rows = yield m.Recall(("measure",))
+    state = replay(problem, [(r["cmd"], r["legs"], r["meas"]) for r in rows])
+    if not rows:
+        yield m.Checkpoint("phase_start:measure")
+    measured = False
+    while True:
+        decision = decide(problem, state, run.memo)
+        shown = progress(run, state, decision)
+        yield m.Checkpoint(PROGRESS_LABEL, shown)
+        if decision.stop is not None:
+            break
+        k = state.n_rows
+        pose = yield from visit(geom, pose, decision.next.pose, plan, f"measure {k + 1}")
+        yield m.Settle(plan.settle_s)
+        row = yield m.Measure("measure", k, m.as_tuple(decision.next.pose))
+        state = update(problem, state, row["cmd"], row["legs"], row["meas"])
+        measured = True
+    if measured:
+        yield m.Checkpoint("phase_end:measure")
+    yield m.Checkpoint(STOP_LABEL, shown)
+    check_route_on(plan, state.commanded(), problem.robot)
+    return pose, shown
+
+
 def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptions
                           ) -> Generator[Any, Any, ProcedureResult]:
     """Measure, identify, upload, verify. Returns what the report needs."""
@@ -175,10 +213,24 @@ def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptio
     geom = controller_geometry(before)
     pose = forward_kinematics(geom.ik_geometry(), (yield m.ReadLegs()), robot.home)[0]
     yield m.Enable()
-    for phase in PRE_PHASES:
-        pose = yield from _measure_phase(phase, plan.poses(phase), geom, pose, plan)
-    rec = recording_from_rows((yield m.Recall(PRE_PHASES)), robot)
-    result = ProcedureResult("measured", recording=rec, chosen=options.estimator, before_params=before)
+    adaptive = None
+    if options.adaptive is not None:
+        pose, adaptive = yield from _adaptive_measure_phase(options.adaptive, geom, pose, plan)
+    else:
+        pose = yield from _measure_phase("measure", plan.poses("measure"), geom, pose, plan)
+    pose = yield from _measure_phase("verify", plan.poses("verify"), geom, pose, plan)
+    rows = yield m.Recall(PRE_PHASES)
+    if adaptive is not None and adaptive["stop"]["kind"] == "not_identifiable":
+        yield from return_home(geom, pose, robot, plan)
+        yield m.Disable()
+        result = ProcedureResult("not identifiable", chosen=options.estimator, before_params=before,
+                                 adaptive=adaptive)
+        result.problems = [adaptive["stop"]["sentence"]]
+        yield m.Checkpoint("not_identifiable", {"problems": result.problems})
+        return result
+    rec = recording_from_rows(rows, robot)
+    result = ProcedureResult("measured", recording=rec, chosen=options.estimator, before_params=before,
+                             adaptive=adaptive)
     result.outcomes = {est: calibrate(rec, robot, estimator=est) for est in ("ls", "linf")}
     controller = controller_info(before, info)
     physics = decide(rec, robot, result.outcomes[options.estimator], controller, physics=options.physics,

@@ -184,6 +184,9 @@ def signoff_section(ctx: SignoffContext, robot: Robot, plan: Any, result: Any, p
                    "effects": [] if result.physics is None or result.block is None else [
                        c.title for c in result.physics.loadable.corrected],
                    "plan_sha256": plan.sha256(), "n_measure_rows": len(measure), "n_verify_poses": len(verify),
+                   "plan": "fixed" if not result.adaptive else "adaptive",
+                   "adaptive_stop": None if not result.adaptive else {
+                       k: result.adaptive.get(k) for k in ("kind", "title", "summary", "prediction", "verification")},
                    "acceptance_sha256": None if ctx.acceptance is None else ctx.acceptance.sha256()},
         "uncertainty": {
             "k": K_COVERAGE, "method": "GUM Supplement 1 Monte Carlo, seeded (docs/certificate.md)",

@@ -69,6 +69,10 @@ class Journal:
         info["options"] = json.loads(info["options"])
         return info
 
+    def set_options(self, options: dict[str, Any]) -> None:
+        """Replace the run's options (only before anything moved: the operator changed the plan on the start form)."""
+        self._db.execute("UPDATE run SET options_json = ?", (json.dumps(options),))
+
     def set_status(self, status: str) -> None:
         self._db.execute("UPDATE run SET status = ?", (status,))
 

@@ -56,7 +56,8 @@ class CalibrationPlan(BaseModel):
     settle_s: float = Field(default=0.5, ge=0.0, description="wait after a move before measuring")
     repeat_retreat_mm: float = Field(default=10.0, gt=0.0, le=100.0,
                                      description="a repeat of the same pose first retracts every leg this much")
-    order: Literal["design", "time"] = Field(default="design", description="design order, or least machine time")
+    order: Literal["design", "time", "adaptive"] = Field(default="design", description="design order, least machine "
+                                                         "time, or as an adaptive run chose and measured them")
     seed: int = 0
 
     @model_validator(mode="after")

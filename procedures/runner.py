@@ -19,7 +19,7 @@ import json
 import logging
 import shlex
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +27,6 @@ from typing import Any
 
 import numpy as np
 import structlog
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from hilcal.metrics import AccuracySummary, pose_errors
 from hilcal.planning.machine_time import TimeEstimate
@@ -35,6 +34,16 @@ from hilcal.recording import write_recording
 from hilcal.reports.timing import time_section
 from hilcal.robot import Robot, RobotFileError, load_robot
 from procedures.acceptance import ACCEPTANCE_PHASE, AcceptanceTest, make_acceptance, save_acceptance
+from procedures.adaptive import (
+    AdaptiveOptions,
+    AdaptiveRun,
+    adaptive_run,
+    adaptive_summary,
+    apply_start_plan,
+    start_form,
+    time_range_json,
+    write_executed_plan,
+)
 from procedures.calibration_procedure import (
     AFTER_PHASE,
     PRE_PHASES,
@@ -42,7 +51,6 @@ from procedures.calibration_procedure import (
     ProcedureResult,
     RunOptions,
     calibration_procedure,
-    recording_from_rows,
     to_parameter_set,
 )
 from procedures.certificate import (
@@ -56,6 +64,7 @@ from procedures.engine import Engine, RunInterrupted
 from procedures.journal import Journal
 from procedures.link_guard import links_summary
 from procedures.plan import CalibrationPlan, PlanError, estimate_plan, load_plan, make_plan, save_plan
+from procedures.run_progress import adaptive_lines, combine_observers, terminal_progress
 from procedures.timing import TimingSection
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NOT_ACCEPTED = 0, 2, 3, 4
@@ -93,18 +102,6 @@ def configure_logs(out_dir: Path) -> None:
     )
 
 
-@contextlib.contextmanager
-def _progress(total: int, done: int) -> Iterator[Callable[[dict], None]]:
-    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    with Progress(*columns, transient=False) as progress:
-        task = progress.add_task("measuring poses", total=total, completed=done)
-
-        def advance(row: dict) -> None:
-            progress.update(task, advance=1, description=f"{row['phase']} pose {row['index'] + 1}")
-
-        yield advance
-
-
 def _per_pose(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     meas = np.array([r["meas"] for r in rows])
     cmd = np.array([r["cmd"] for r in rows])
@@ -130,24 +127,35 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
     done = len(journal.measurements((*PRE_PHASES, AFTER_PHASE, ACCEPTANCE_PHASE)))
     if done:
         journal.event("resumed", measurements=done)
-    total = len(plan.measure_poses) + 2 * len(plan.verify_poses)
-    if options.acceptance is not None:
-        total += 5 * options.acceptance.cycles
+    after_measure = 2 * len(plan.verify_poses) + (0 if options.acceptance is None else 5 * options.acceptance.cycles)
+    total = len(plan.measure_poses) + after_measure
+    if options.adaptive is not None:  # the best case at first; each forecast updates it
+        total = max(done, journal.step("adaptive_best_rows") or 0) + after_measure
     try:
-        with _progress(total, done) as advance:
+        with terminal_progress(total, done) as (advance, bar, task):
+            shown = None if options.adaptive is None else adaptive_lines(bar, task, after_measure)
             engine = Engine(devices, journal, confirm=confirm, on_measure=advance,
-                            move_timeout_s=devices.station.motion.move_timeout_s, observer=observer,
+                            move_timeout_s=devices.station.motion.move_timeout_s,
+                            observer=combine_observers(observer, shown),
                             links=devices.station.links, approach_mm=plan.approach_mm, on_prompt=on_prompt)
             result: ProcedureResult = engine.run(calibration_procedure(plan, robot, options))
     except RunInterrupted as e:
         journal.set_status("interrupted")
+        if options.adaptive is not None:
+            write_executed_plan(journal, out_dir, plan, run_id)
         return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} stopped: {e}. The journal is kept; continue with: "
                        f"{resume_command(run_id, out_dir)}")
     pre_rows = journal.measurements(PRE_PHASES)
-    write_recording(out_dir / "recording.csv", recording_from_rows(pre_rows, robot))
+    if result.recording is not None:  # a run stopped as not identifiable may have too few rows for a recording
+        write_recording(out_dir / "recording.csv", result.recording)
     route = None if options.acceptance is None else options.acceptance.route()[0]
+    reference = plan
+    if options.adaptive is not None:
+        plan = write_executed_plan(journal, out_dir, plan, run_id) or plan
     machine_time = None if timing is None else machine_time_report(journal, plan, robot, timing, route)
     drift = _stage_parameters(journal, run_id, result, robot, started_at, recorder)
+    if options.adaptive is not None and result.adaptive is not None:
+        result.adaptive = adaptive_summary(options.adaptive, result, reference, plan)
     signed = None
     if signoff is not None and result.status == "complete":
         signed = signoff_section(signoff, robot, plan, result, pre_rows, run_id,
@@ -155,6 +163,9 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
     report_path = _write_report(out_dir, run_id, plan, robot, options, result, started_at, journal, machine_time,
                                 drift, signed)
     journal.set_status(result.status)
+    if result.status == "not identifiable":
+        return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} {result.status}: {'; '.join(result.problems)}. "
+                       "Nothing identified or uploaded; give the run more time (--max-minutes)", report_path)
     if result.status != "complete":
         said = "" if result.physics is None or not result.physics.findings else (
             " The diagnosis of the run's recording: " + " ".join(result.physics.findings))
@@ -230,6 +241,7 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
         links=links_summary(journal),
         drift=drift,
         signoff=signoff,
+        adaptive=result.adaptive if isinstance(result.adaptive, dict) and "summary" in result.adaptive else None,
     )
     json_path, _ = write_run_report(out_dir, report)
     journal.event("report", path=str(json_path))
@@ -259,7 +271,7 @@ def plan_for_run(journal: Journal, plan: CalibrationPlan | None, run_id: str | N
     assert plan is not None
     new_id = new_run_id()
     journal.start(new_id, plan.sha256(), json.dumps(plan.model_dump()), options)
-    save_plan(plan, journal.path.parent / "plan.json")
+    save_plan(plan, journal.path.parent / ("reference_plan.json" if options.get("adaptive") else "plan.json"))
     return new_id, plan, options
 
 
@@ -287,11 +299,15 @@ class RunRequest:
     """Cycles of the acceptance test (ISO 9283: 30)."""
     physics: bool = True
     """Diagnose the run's recording and upload the compensation of what it finds (False: the geometry alone)."""
+    adaptive: AdaptiveOptions | None = None
+    """Measure adaptively (``procedures.adaptive``): until the accuracy is proven, within the whole run's budget."""
     sim_station: SimStation | None = None
     timing: TimingSection | None = None
     """The machine's timing for a --sim run (a real run reads the station file's [timing])."""
     on_estimate: Callable[[CalibrationPlan, TimeEstimate, TimingSection], None] | None = None
     """Called with the plan's estimated machine time before anything moves."""
+    on_adaptive_estimate: Callable[[AdaptiveRun, dict, TimingSection], None] | None = None
+    """An adaptive run's instead: called with its range before motion (``procedures.adaptive.time_range_json``)."""
     on_prompt: Callable[[Any], None] | None = None
     """Called with a procedure prompt before it is asked at the terminal (prints the upload approval's detail)."""
 
@@ -340,7 +356,9 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
                            "robot_path": None if req.robot_path is None else str(req.robot_path),
                            "station_path": None if req.station_path is None else str(req.station_path),
                            "sim_config": None if req.sim_config is None else str(req.sim_config),
-                           "physics": req.physics}
+                           "physics": req.physics,
+                           "adaptive": None if req.adaptive is None else req.adaptive.model_dump()}
+                adaptive = _adaptive_for(plan, robot, timing, options, test)
                 run_id, plan, options = plan_for_run(journal, plan, None, options)
                 if test is not None:
                     save_acceptance(test, req.out_dir / "acceptance.json")
@@ -349,9 +367,8 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
                 robot = load_robot(options["robot_path"])
                 timing = TimingSection.model_validate(options.get("timing", {}))
                 test = AcceptanceTest.model_validate(options["acceptance"]) if options.get("acceptance") else None
-            if req.on_estimate is not None:
-                route = None if test is None else test.route()[0]
-                req.on_estimate(plan, estimate_plan(plan, robot, timing.timing(), acceptance_poses=route), timing)
+                adaptive = _adaptive_for(plan, robot, timing, options, test)
+            shown = _announce(req, journal, plan, robot, timing, test, adaptive)
             if options["sim"]:
                 if req.sim_station is None:
                     raise ValueError("this run uses the simulated devices (--sim), but no simulator was given")
@@ -369,23 +386,31 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
         except DeviceOpenError as e:
             return RunExit(EXIT_INTERRUPTED, run_id, f"cannot open the station's devices: {e}; the journal is kept, "
                            f"continue with: {resume_command(run_id, req.out_dir)}")
-        run_options = RunOptions(estimator=options["estimator"], force=bool(options["force"]), acceptance=test,
-                                 physics=bool(options.get("physics", True)))
         operator = req.operator or options.get("operator") or settings.operator
         if panel is not None:
             from procedures.panel.control import NotStarted
 
+            acceptance_poses = 0 if test is None else 5 * test.cycles
             panel.run_opened(run_id=run_id, plan=plan, robot=robot, out_dir=req.out_dir, journal=journal,
-                             devices=devices, resumed=req.resume is not None,
-                             acceptance_poses=0 if test is None else 5 * test.cycles)
+                             devices=devices, resumed=req.resume is not None, acceptance_poses=acceptance_poses,
+                             adaptive=shown)
+            route = None if test is None else test.route()[0]
             try:
-                operator = panel.wait_start() or operator
+                operator = panel.wait_start(*start_form(plan, robot, timing.timing(), options, route,
+                                                        req.resume is None)) or operator
             except (NotStarted, KeyboardInterrupt):
                 result = RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} not started by the operator; start it "
                                  f"later with: {resume_command(run_id, req.out_dir)}")
                 panel.finished(code=result.code, message=result.message, status="not started", out_dir=None,
                                report=None)
                 return result
+            if panel.start_plan is not None and apply_start_plan(panel.start_plan, journal, options, req.out_dir):
+                options = journal.run_info()["options"]
+                adaptive = _adaptive_for(plan, robot, timing, options, test)
+                panel.view.show_plan(plan, robot, acceptance_poses,
+                                     _announce(req, journal, plan, robot, timing, test, adaptive))
+        run_options = RunOptions(estimator=options["estimator"], force=bool(options["force"]), acceptance=test,
+                                 physics=bool(options.get("physics", True)), adaptive=adaptive)
         _record_start(recorder, journal, req, run_id, started_at, robot, plan, operator, run_options.estimator)
         signoff = SignoffContext(operator, settings, test, bool(options["sim"]), options["robot_path"],
                                  station.cmm.url)
@@ -403,6 +428,30 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
             panel.finished(code=result.code, message=result.message, status=journal.run_info()["status"],
                            out_dir=req.out_dir, report=report)
         return result
+
+
+def _announce(req: RunRequest, journal: Journal, plan: CalibrationPlan, robot: Robot, timing: TimingSection,
+              test: AcceptanceTest | None, adaptive: AdaptiveRun | None) -> dict | None:
+    """Before motion: print the estimate (an adaptive run's range); the adaptive run's options and range."""
+    if adaptive is None:
+        if req.on_estimate is not None:
+            route = None if test is None else test.route()[0]
+            req.on_estimate(plan, estimate_plan(plan, robot, timing.timing(), acceptance_poses=route), timing)
+        return None
+    range_json = time_range_json(adaptive)
+    journal.set_step("adaptive_best_rows", range_json["best_rows"])
+    if req.on_adaptive_estimate is not None:
+        req.on_adaptive_estimate(adaptive, range_json, timing)
+    return {**adaptive.options.model_dump(), **range_json}
+
+
+def _adaptive_for(plan: CalibrationPlan, robot: Robot, timing: TimingSection, options: dict,
+                  test: AcceptanceTest | None) -> AdaptiveRun | None:
+    """The adaptive problem of a run whose options ask for one (rebuilt alike on resume), else None."""
+    if not options.get("adaptive"):
+        return None
+    return adaptive_run(plan, robot, timing.timing(), AdaptiveOptions.model_validate(options["adaptive"]),
+                        None if test is None else test.route()[0])
 
 
 def _station_timing(req: RunRequest) -> TimingSection:

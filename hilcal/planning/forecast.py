@@ -10,13 +10,24 @@ noise's size), the worst case is the budget; with an assumed noise (the CMM's st
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
 from hilcal.planning.prediction import PoseNoise
-from hilcal.planning.sequential import AdaptiveProblem, AdaptiveState, MeasuredRow, choose, evaluate, mode_for
+from hilcal.planning.sequential import (
+    AdaptiveProblem,
+    AdaptiveState,
+    ChoiceMemo,
+    MeasuredRow,
+    PoseChoice,
+    accuracy,
+    choose,
+    minimum_for,
+    mode_for,
+)
 from hilcal.planning.stopping import StopKind
 
 
@@ -36,18 +47,20 @@ class Forecast:
 
 
 def forecast(problem: AdaptiveProblem, state: AdaptiveState, noise: PoseNoise | None = None, *,
-             best_case: bool = False) -> Forecast:
+             best_case: bool = False, memo: ChoiceMemo | None = None) -> Forecast:
     """Simulate the rest of the run from `state` (see the module docstring).
 
     noise: used until the repeats give one (None: unit noise with the repeats' dof, meaningful only without a target
     or for the best case).
     best_case: the accuracy rule counts as met whenever a prediction exists (stop as soon as the minimum holds).
+    memo: the run's choices so far (``ChoiceMemo``): a forecast after every row then computes only the predictions.
     """
     with threadpool_limits(limits=1, user_api="blas"):
-        return _forecast(problem, state, noise, best_case)
+        return _forecast(problem, state, noise, best_case, choose if memo is None else memo.choose)
 
 
-def _forecast(problem: AdaptiveProblem, state: AdaptiveState, noise: PoseNoise | None, best_case: bool) -> Forecast:
+def _forecast(problem: AdaptiveProblem, state: AdaptiveState, noise: PoseNoise | None, best_case: bool,
+              pick: Callable[..., PoseChoice | None]) -> Forecast:
     dof = 3.0 * problem.settings.repeats
     unit = PoseNoise.isotropic(1.0, 1.0, dof, dof, "unit noise (the improvement rule does not depend on its size)")
     level = state.noise or noise or unit
@@ -57,17 +70,17 @@ def _forecast(problem: AdaptiveProblem, state: AdaptiveState, noise: PoseNoise |
     budget = problem.settings.max_measure_s
     while True:
         if len(poses):
-            prediction, rule, minimum = evaluate(problem, poses, level)
-            met = (prediction is not None) if best_case else rule.met
-            sim = AdaptiveState(sim.rows, elapsed, None, level, prediction, rule, minimum, state.screening,
+            minimum = minimum_for(problem, poses)
+            sim = AdaptiveState(sim.rows, elapsed, None, level, None, None, minimum, state.screening,
                                 minimum.library_efficiency)
-            if met and minimum.met and not sim.diagnosis_pending(problem):
-                kind = rule.kind or "target"
-                return Forecast(len(poses) - state.n_rows, elapsed - state.elapsed_s, kind,
-                                None if prediction is None else prediction.upper_mm, level.source)
-        choice = choose(problem, poses, candidates, mode_for(problem, sim))
+            if minimum.met and not sim.diagnosis_pending(problem):
+                prediction, rule = accuracy(problem, poses, level)
+                if (prediction is not None) if best_case else rule.met:
+                    return Forecast(len(poses) - state.n_rows, elapsed - state.elapsed_s, rule.kind or "target",
+                                    None if prediction is None else prediction.upper_mm, level.source)
+        choice = pick(problem, poses, candidates, mode_for(problem, sim))
         if choice is None or elapsed + choice.time_s > budget:
-            prediction = sim.prediction
+            prediction = accuracy(problem, poses, level)[0] if len(poses) else None
             kind: StopKind = "budget" if prediction is not None else "not_identifiable"
             return Forecast(len(poses) - state.n_rows, elapsed - state.elapsed_s, kind,
                             None if prediction is None else prediction.upper_mm, level.source)

@@ -19,7 +19,7 @@ of a variance estimated with ν degrees of freedom), so the upper bound holds wi
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.special import gammaincinv
@@ -151,12 +151,24 @@ class Draws:
     parameters: np.ndarray
     verify: np.ndarray
     uniform: np.ndarray
+    _scales: dict[tuple[int, float], np.ndarray] = field(default_factory=dict, compare=False, repr=False)
+    """The χ² factors already computed (a run predicts many designs under one noise estimate)."""
 
     @classmethod
     def seeded(cls, seed: int, n_verify: int, n_draws: int) -> Draws:
         rng = np.random.default_rng([seed, 0x9E7])
         return cls(rng.standard_normal((6, N_PARAMETERS, n_draws)), rng.standard_normal((n_verify, 3, n_draws)),
                    rng.random((6, n_draws)))
+
+    def chi2_scale(self, row: int, dof: float) -> np.ndarray:
+        """sqrt(dof / χ²_dof) at the uniform draws of `row` (the factor on a σ estimated with dof degrees of freedom),
+        kept for the last 64 (row, dof) pairs."""
+        key = (row, float(dof))
+        if key not in self._scales:
+            if len(self._scales) >= 64:
+                del self._scales[next(iter(self._scales))]
+            self._scales[key] = _chi2_scale(self.uniform[row], dof)
+        return self._scales[key]
 
 
 @dataclass(frozen=True)
@@ -206,8 +218,8 @@ def predict_verify_max(row_jacobians: np.ndarray, verify_position_jacobians: np.
     parts = parameter_covariance_parts(row_jacobians)
     flat = Jv.reshape(-1, N_PARAMETERS)
     sigma = np.asarray(noise.sigma_mm)
-    u = draws.uniform[[0, 0, 0, 3, 3, 3]] if noise.shared else draws.uniform
-    scale = np.stack([_chi2_scale(u[k], noise.dof[k]) for k in range(6)])
+    rows = (0, 0, 0, 3, 3, 3) if noise.shared else range(6)
+    scale = np.stack([draws.chi2_scale(row, noise.dof[k]) for k, row in enumerate(rows)])
     weights = np.concatenate([flat @ _sqrt_psd(parts[k]) * sigma[k] for k in range(6)], axis=1)
     part = weights @ (draws.parameters * scale[:, None, :]).reshape(len(weights.T), -1)
     verify_noise = draws.verify * (sigma[:3, None] * scale[:3])

@@ -33,7 +33,7 @@ from hilcal.kinematics import Geometry, inverse_kinematics
 from hilcal.planning.candidates import CandidateSet, candidate_set, designable_robot, library_columns, library_variables
 from hilcal.planning.criteria import d_gain, ds_gain, v_gain
 from hilcal.planning.design import factorial_exchange, pose_jacobians
-from hilcal.planning.machine_time import MotionRules, MotionTiming, move_costs, repeatable_pose
+from hilcal.planning.machine_time import MotionRules, MotionTiming, format_minutes, move_costs, repeatable_pose
 from hilcal.planning.prediction import (
     Draws,
     PoseNoise,
@@ -213,16 +213,25 @@ def _prediction(problem: AdaptiveProblem, poses: np.ndarray, noise: PoseNoise | 
 def evaluate(problem: AdaptiveProblem, poses: np.ndarray, noise: PoseNoise | None
              ) -> tuple[VerifyPrediction | None, RuleCheck, DiagnosisMinimum]:
     """Prediction, accuracy rule and diagnosis minimum of commanded rows [n, 6] under a noise (no measurements)."""
+    return *accuracy(problem, poses, noise), minimum_for(problem, poses)
+
+
+def accuracy(problem: AdaptiveProblem, poses: np.ndarray, noise: PoseNoise | None
+             ) -> tuple[VerifyPrediction | None, RuleCheck]:
+    """Prediction and accuracy rule of commanded rows [n, 6] under a noise (the Monte Carlo part of ``evaluate``)."""
     s = problem.settings
     prediction = _prediction(problem, poses, noise)
     earlier = _prediction(problem, poses[:-s.window], noise) if len(poses) > s.window else None
-    rule = accuracy_rule(prediction, earlier, s.window, s.target_mm, s.min_improvement)
+    return prediction, accuracy_rule(prediction, earlier, s.window, s.target_mm, s.min_improvement)
+
+
+def minimum_for(problem: AdaptiveProblem, poses: np.ndarray) -> DiagnosisMinimum:
+    """The diagnosis minimum of commanded rows [n, 6]: a function of the poses alone, not of the noise."""
     load, stroke = library_variables(problem.robot, poses) if len(poses) else (np.zeros((0, 6)),) * 2
     groups = repeat_groups(poses) if len(poses) else []
-    minimum = diagnosis_minimum(len(poses), max((g.size for g in groups), default=0),
-                                _library_efficiency(problem, poses), load, stroke, problem.candidate_range,
-                                s.minimum())
-    return prediction, rule, minimum
+    return diagnosis_minimum(len(poses), max((g.size for g in groups), default=0),
+                             _library_efficiency(problem, poses), load, stroke, problem.candidate_range,
+                             problem.settings.minimum())
 
 
 def _library_efficiency(problem: AdaptiveProblem, poses: np.ndarray) -> float:
@@ -376,10 +385,32 @@ def choose(problem: AdaptiveProblem, poses: np.ndarray, candidates: list[int], m
                       float(gain[k] / time_s[k]))
 
 
-def next_pose(problem: AdaptiveProblem, state: AdaptiveState) -> PoseChoice | None:
+class ChoiceMemo:
+    """Choices already made for one problem, keyed by the commanded rows and the mode.
+
+    ``choose`` is a pure function of them, so a run that forecasts its rest after every row (the same future rows each
+    time, until the screening changes the mode) computes each choice once. Pass one memo per problem.
+    """
+
+    def __init__(self) -> None:
+        self._choices: dict[tuple[bytes, tuple[int, ...], str], PoseChoice | None] = {}
+
+    def choose(self, problem: AdaptiveProblem, poses: np.ndarray, candidates: list[int], mode: Mode
+               ) -> PoseChoice | None:
+        key = (np.ascontiguousarray(poses, dtype=float).tobytes(), tuple(candidates), mode)
+        if key not in self._choices:
+            self._choices[key] = choose(problem, poses, candidates, mode)
+        return self._choices[key]
+
+    def __len__(self) -> int:
+        return len(self._choices)
+
+
+def next_pose(problem: AdaptiveProblem, state: AdaptiveState, memo: ChoiceMemo | None = None) -> PoseChoice | None:
     """The next pose for the measured state (None: no candidate is reachable within the leg limits)."""
+    pick = choose if memo is None else memo.choose
     with threadpool_limits(limits=1, user_api="blas"):
-        return choose(problem, state.commanded(), [r.candidate for r in state.rows], mode_for(problem, state))
+        return pick(problem, state.commanded(), [r.candidate for r in state.rows], mode_for(problem, state))
 
 
 @dataclass(frozen=True)
@@ -398,8 +429,9 @@ def may_stop(problem: AdaptiveProblem, state: AdaptiveState) -> bool:
             and state.screening is not None and not state.diagnosis_pending(problem))
 
 
-def decide(problem: AdaptiveProblem, state: AdaptiveState) -> Decision:
-    """Stop (target, converged, budget, not identifiable) or the next pose, for the measured state."""
+def decide(problem: AdaptiveProblem, state: AdaptiveState, memo: ChoiceMemo | None = None) -> Decision:
+    """Stop (target, converged, budget, not identifiable) or the next pose, for the measured state (memo: choices
+    already made, see ``ChoiceMemo``)."""
     s = problem.settings
     physics = "" if state.screening is None or not state.screening.suspected else f"; {state.screening.sentence()}"
     if may_stop(problem, state):
@@ -409,7 +441,7 @@ def decide(problem: AdaptiveProblem, state: AdaptiveState) -> Decision:
         reason = StopReason(state.rule.kind, f"{state.rule.sentence}{extra}", state.n_rows, state.elapsed_s,
                             state.prediction, (), state.screening)
         return Decision(None, reason, state.prediction, reason.sentence)
-    choice = next_pose(problem, state)
+    choice = next_pose(problem, state, memo)
     if choice is not None and state.elapsed_s + choice.time_s <= s.max_measure_s:
         why = state.rule.sentence if state.rule is not None else "starting: the first pose, then its repeats"
         if state.diagnosis_pending(problem):
@@ -418,7 +450,7 @@ def decide(problem: AdaptiveProblem, state: AdaptiveState) -> Decision:
         elif state.minimum is not None and not state.minimum.met:
             why = f"{why}; the diagnosis still needs: {'; '.join(state.minimum.missing)}"
         return Decision(choice, None, state.prediction, why)
-    budget = f"the measure budget of {s.max_measure_s / 60:.1f} min"
+    budget = f"the measure budget of {format_minutes(s.max_measure_s)}"
     if state.prediction is None:
         if state.n_unresolved:
             names = state.unidentifiable

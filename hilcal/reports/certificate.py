@@ -173,6 +173,15 @@ def _compensation(report: Mapping[str, Any]) -> str:
     return f"<p>Geometry: {_esc(physics.get('geometry_source'))}.</p>{table}{by_hand}{source}"
 
 
+def _plan(method: Mapping[str, Any]) -> str:
+    """Fixed, or adaptive with why its measurement stopped: the prediction then and what the verification measured."""
+    stop = method.get("adaptive_stop")
+    if method.get("plan") != "adaptive" or not stop:
+        return f"fixed: {_esc(method.get('n_measure_rows'))} measurement rows"
+    return (f"<span id='adaptive-stop'>adaptive, measured until the accuracy was proven; stop: "
+            f"<b>{_esc(stop.get('title'))}</b>. {_esc(stop.get('summary'))}</span>")
+
+
 def _software(sw: Mapping[str, Any]) -> str:
     modified = " (with local changes)" if sw.get("git_modified") else ""
     revision = f"<code>{_esc(sw.get('git_revision'))}</code>"
@@ -217,6 +226,7 @@ platform, hardware in the loop (hilcal)</div></div>
                   if method.get("effects") else "") + f", {_esc(method.get('estimator'))} "
                f"estimator; {_esc(method.get('n_measure_rows'))} measurement rows, "
                f"{_esc(method.get('n_verify_poses'))} held-out verification poses"),
+    ("measurement plan", _plan(method)),
     ("pose plan SHA-256", f"<code>{_esc(method.get('plan_sha256'))}</code>"),
     ("software", _software(report.get("software") or {})),
 ])}</section>{warn}

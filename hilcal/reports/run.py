@@ -25,6 +25,7 @@ from matplotlib.figure import Figure
 
 from hilcal.identification import IdentificationResult
 from hilcal.metrics import AccuracySummary, Indicators
+from hilcal.reports.adaptive import adaptive_html
 from hilcal.reports.certificate import signoff_html
 from hilcal.reports.drift import drift_html
 from hilcal.reports.physics import physics_html
@@ -78,6 +79,8 @@ class RunReport:
     signoff: dict | None = None
     """report.json's sign-off keys (operator, station, machine, software, instrument, environment, method,
     uncertainty, iso9283, certificate): ``procedures.certificate.signoff_section``."""
+    adaptive: dict | None = None
+    """``hilcal.reports.adaptive.adaptive_section``: an adaptive run's stop reason, prediction and verification."""
 
     def __post_init__(self) -> None:
         if self.identifications and self.chosen not in self.identifications:
@@ -210,6 +213,7 @@ def report_json(r: RunReport) -> dict[str, Any]:
         "machine_time": r.machine_time,
         "links": r.links,
         "drift": r.drift,
+        "adaptive": r.adaptive,
         **(r.signoff or {}),
     }
     return _jsonable(out)
@@ -493,6 +497,7 @@ def report_html(r: RunReport) -> str:
 <tr><th>estimator requested / uploaded</th><td>{_esc(r.estimator)} / {_esc(r.chosen or 'none')}</td></tr>
 <tr><th>started / finished</th><td>{_esc(r.started_at)} / {_esc(r.finished_at)}</td></tr></table>
 <p>verification (measured): {_esc(headline)}</p>
+<h2>Measurement plan</h2>{adaptive_html(r.adaptive)}
 <h2>Verification errors before and after calibration (cf. paper Table 7)</h2>{_table7_html(r)}
 <h2>Machine time: estimated against actual</h2>{time_html(r.machine_time)}
 <h2>Links: holds and retries</h2>{_links_html(r.links)}

@@ -34,7 +34,17 @@ def run(
                                                    "compensation of what it finds with the geometry; off: the "
                                                    "geometry alone")] = PhysicsChoice.on,
     robot: RobotOption = None,
-    plan: Annotated[Path | None, typer.Option(help="re-run a saved plan.json")] = None,
+    plan: Annotated[Path | None, typer.Option(help="re-run a saved plan.json (an adaptive run's is the plan as it "
+                                              "executed it); with --adaptive, its verify poses and its measure poses "
+                                              "as the reference")] = None,
+    adaptive: Annotated[bool, typer.Option("--adaptive", help="measure one pose at a time, the most informative "
+                                           "next, until the accuracy is proven (docs/procedure.md)")] = False,
+    target_mm: Annotated[float | None, typer.Option(help="with --adaptive: stop once the predicted verify maximum is "
+                                                    "below this with 95 % confidence (mm); without it: when the "
+                                                    "prediction stops improving")] = None,
+    max_minutes: Annotated[float | None, typer.Option(help="with --adaptive: the whole run's machine time; the verify "
+                                                      "phases' estimate is kept for them (default: the fixed plan's "
+                                                      "estimate)")] = None,
     seed: int = 0,
     records: RecordsOption = None,
     operator: Annotated[str | None, typer.Option(help="name recorded with the run and on its certificate "
@@ -51,14 +61,23 @@ def run(
 
     Exit codes: 0 complete (and accepted), 2 bad input, 3 stopped (resumable), 4 complete but not accepted.
     """
+    from procedures.adaptive import AdaptiveError, adaptive_options
     from procedures.cli.panel import run_with_panel
-    from procedures.cli.plan_time import print_run_estimate, timing_or_fail
+    from procedures.cli.plan_time import print_adaptive_estimate, print_run_estimate, timing_or_fail
     from procedures.cli.run_summary import print_run_end
     from procedures.cli.sim_station import SIM_TIMING, sim_station
     from procedures.runner import RunRequest, default_records_path, execute_run
 
     if resume is None and not sim and station is None:
         fail("give --station FILE for real hardware, or --sim for the simulated devices")
+    if not adaptive and (target_mm is not None or max_minutes is not None):
+        fail("--target-mm and --max-minutes belong to an adaptive run: add --adaptive")
+    if resume is not None and adaptive:
+        fail("a resumed run continues as it started (its journal holds its plan): leave out --adaptive")
+    try:
+        adaptive_plan = adaptive_options(target_mm, max_minutes) if adaptive else None
+    except AdaptiveError as e:
+        fail(str(e))
     timing = (timing_or_fail(station) if station is not None else SIM_TIMING) if sim else None
     if operator is None and resume is None and not yes and not panel:
         operator = ask_operator()
@@ -66,7 +85,8 @@ def run(
                          yes=yes, estimator=estimator.value, force=force, robot_path=robot, plan_path=plan,
                          seed=seed, records_path=records, operator=operator, sim_station=sim_station, timing=timing,
                          on_estimate=print_run_estimate, acceptance=None if acceptance is None else acceptance.value,
-                         cycles=cycles, physics=physics is PhysicsChoice.on, on_prompt=_print_prompt_detail)
+                         cycles=cycles, physics=physics is PhysicsChoice.on, on_prompt=_print_prompt_detail,
+                         adaptive=adaptive_plan, on_adaptive_estimate=print_adaptive_estimate)
 
     def execute(confirm, session=None):
         result = execute_run(request, confirm, session)

@@ -4,6 +4,7 @@ calibration plan with its order and an optional time budget (`hilcal design --ma
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from rich.table import Table
@@ -53,6 +54,32 @@ def print_run_estimate(plan: CalibrationPlan, estimate: TimeEstimate, timing: Ti
     rows = [(p.phase.replace("_", " "), TimeEstimate((p,))) for p in estimate.phases]
     out.print(estimate_table(f"Estimated machine time: {format_minutes(estimate.total_s)} ({plan.order} order; "
                              f"{timing.describe()}, settle {plan.settle_s:g} s)", [*rows, ("total", estimate)]))
+
+
+def print_adaptive_estimate(run: Any, before_motion: dict, timing: TimingSection) -> None:
+    """`hilcal run --adaptive`: the range before motion: the best case (the run stops as soon as the diagnosis has its
+    minimum and the rule allows) and the worst case, the budget M; the verify phases come on top."""
+    b = before_motion
+    table = Table(title=f"Estimated machine time of the adaptive run: {format_minutes(b['run_best_s'])} to "
+                        f"{format_minutes(b['run_worst_s'])} ({timing.describe()})", title_justify="left")
+    for column in ("", "best case", "worst case (the budget)", "the fixed plan"):
+        table.add_column(column, justify="left" if not column else "right")
+    fixed_rows = run.budget.fixed_measure_rows
+    table.add_row("measure", f"{format_minutes(b['best_s'])} ({b['best_rows']} rows)",
+                  format_minutes(b["worst_s"]), f"{format_minutes(b['fixed_measure_s'])} ({fixed_rows} rows)")
+    rest = format_minutes(b["after_measure_s"])
+    table.add_row("verify, upload, verify, home", rest, rest, rest)
+    table.add_row("total", format_minutes(b["run_best_s"]), format_minutes(b["run_worst_s"]),
+                  format_minutes(b["fixed_total_s"]))
+    out.print(table)
+    target = run.options.target_mm
+    rule = (f"stop once the verify maximum is predicted below {target * 1000:g} µm with 95 % confidence"
+            if target is not None else "stop once the prediction improves by less than "
+            f"{run.problem.settings.min_improvement:.0%} per row")
+    out.print(f"adaptive plan: {rule}, never before the diagnosis has its minimum; budget {run.budget.source} "
+              f"({format_minutes(run.budget.total_s)}, of which {format_minutes(run.budget.measure_s)} to measure). "
+              "The best case does not depend on the noise; the noise found in the repeated pose decides.",
+              highlight=False, markup=False, soft_wrap=True)
 
 
 def _summary(plan: CalibrationPlan) -> str:

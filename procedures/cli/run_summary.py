@@ -1,5 +1,6 @@
 """How `hilcal run` ends: the links' statistics, then a short summary of report.json (the verification poses before
-and after with their uncertainty, what was uploaded, the verdict, where the report and certificate are).
+and after with their uncertainty, an adaptive run's stop reason, what was uploaded, the verdict, where the report and
+certificate are).
 
 The same end for a plain run, a `--panel` run and a resumed one. report.json is read defensively: a key a run did
 not reach (a refused upload, no sign-off) or one a later version adds is shown as such, never as a made-up number.
@@ -124,6 +125,9 @@ def run_summary(report: Mapping[str, Any], report_path: Path, certificate_path: 
     facts = Table.grid(padding=(0, 2))
     facts.add_column(style="bold")
     facts.add_column()
+    adaptive = report.get("adaptive")
+    if isinstance(adaptive, Mapping) and adaptive.get("summary"):
+        facts.add_row("adaptive", Text(str(adaptive["summary"])))
     for n, line in enumerate(uploaded_lines(report)):
         facts.add_row("uploaded" if n == 0 else "", Text(line))
     facts.add_row("verdict", verdict_text(report))

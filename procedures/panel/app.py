@@ -110,7 +110,8 @@ def build_app(ctx: PanelContext, *, token: str | None = None, loopback_only: boo
             if not isinstance(body.get("answer"), bool):
                 raise PanelRequestError("'answer' must be true or false", 400)
             result = _control().answer(int(request.path_params["qid"]), body["answer"], client=_client(request),
-                                       operator=body.get("operator"), confirm_sha256=body.get("confirm_sha256"))
+                                       operator=body.get("operator"), confirm_sha256=body.get("confirm_sha256"),
+                                       plan=body.get("plan"))
         except PanelRequestError as e:
             return _error(e, e.status)
         return JSONResponse(result)

@@ -87,6 +87,9 @@ class OperatorControl:
         self._pause_pending: str | None = None
         self._pause_via: str | None = None
         self._abort_pending = False
+        self.start_plan: dict[str, Any] | None = None
+        """The measurement plan chosen on the start form (None: as the command line asked)."""
+        self._check_plan: Callable[[dict[str, Any]], dict[str, Any]] | None = None
 
     # ------------------------------------------------------------------ engine side (engine thread)
 
@@ -132,12 +135,18 @@ class OperatorControl:
             return self._record(self._new(kind, key, text, detail), True, "--yes", None)
         return self._ask(kind, key, text, detail)
 
-    def wait_start(self, text: str) -> str:
-        """Block until the operator starts the run (page or terminal); returns the operator's name."""
+    def wait_start(self, text: str, plan: dict[str, Any] | None = None,
+                   check_plan: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> str:
+        """Block until the operator starts the run (page or terminal); returns the operator's name.
+
+        plan: the measurement plan the start form shows (``choosable``: a new run's plan can still change there);
+        check_plan validates a plan chosen on the page (ValueError with the reason) and returns it normalized.
+        """
         if self.yes:
             self._record(self._new("start", "start", text, None), True, "--yes", None)
             return self.operator or ""
-        if not self._ask("start", "start", text, {"operator": self.operator}):
+        self._check_plan = check_plan if plan is not None and plan.get("choosable") else None
+        if not self._ask("start", "start", text, {"operator": self.operator, "plan": plan}):
             raise NotStarted("the operator did not start the run")
         return self.operator or ""
 
@@ -204,8 +213,9 @@ class OperatorControl:
     # ------------------------------------------------------------------ page and terminal (their threads)
 
     def answer(self, question_id: int, answer: bool, *, client: str | None = None, operator: str | None = None,
-               confirm_sha256: str | None = None) -> dict[str, Any]:
-        """An answer from the page; PanelRequestError if that question is not the open one."""
+               confirm_sha256: str | None = None, plan: Any = None) -> dict[str, Any]:
+        """An answer from the page; PanelRequestError if that question is not the open one (or, starting, if the
+        plan chosen on the form cannot make a run: nothing changes then)."""
         with self._cond:
             q = self._question
             if q is None or q.id != question_id or q.answer is not None:
@@ -213,11 +223,23 @@ class OperatorControl:
             name = (operator or "").strip() or None
             if q.kind == "start" and answer and not (name or self.operator):
                 raise PanelRequestError("give the operator's name to start the run", 400)
+            if q.kind == "start" and answer and plan is not None:
+                self.start_plan = self._checked_plan(plan)
             if q.kind == "upload" and answer and confirm_sha256 != (q.detail or {}).get("new_sha256"):
                 raise PanelRequestError("approving the upload needs the explicit confirmation of the parameter set "
                                         "shown (its SHA-256); nothing was uploaded", 400)
             self._resolve_locked(q, answer, "page", client, name if q.kind == "start" else None)
             return q.public()
+
+    def _checked_plan(self, plan: Any) -> dict[str, Any]:
+        if self._check_plan is None:
+            raise PanelRequestError("this run's plan cannot change any more (a resumed run goes on as it started)", 400)
+        if not isinstance(plan, dict) or not isinstance(plan.get("adaptive"), bool):
+            raise PanelRequestError("'plan' must be an object with 'adaptive' true or false", 400)
+        try:
+            return self._check_plan(plan)
+        except ValueError as e:
+            raise PanelRequestError(f"the plan: {e}; nothing started", 400) from None
 
     def terminal_line(self, line: str) -> None:
         """A line typed at the terminal answers the open question, if any."""

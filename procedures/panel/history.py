@@ -19,7 +19,8 @@ import structlog
 log = structlog.get_logger(__name__)
 
 RUN_FILES = {"report.html": "text/html", "report.json": "application/json", "recording.csv": "text/csv",
-             "plan.json": "application/json", "diagnosis/index.html": "text/html",
+             "plan.json": "application/json", "reference_plan.json": "application/json",
+             "diagnosis/index.html": "text/html",
              "diagnosis/diagnosis.json": "application/json", "certificate.html": "text/html",
              "certificate.pdf": "application/pdf"}
 

@@ -32,6 +32,7 @@ SECTIONS: dict[str, Any] = {
     "upload": None,
     "result": None,
     "diagnosis": None,
+    "adaptive": None,
     "timeline": [],
 }
 

@@ -1,8 +1,11 @@
-"""What the engine does, as the panel's sections: plan, progress and time estimate, measurements, identification.
+"""What the engine does, as the panel's sections: plan, progress and time estimate, measurements, identification, and
+an adaptive run's decisions.
 
 `RunView.on_engine_event` is an engine observer (see `procedures.engine.EngineObserver`): it reads the
 messages the procedure yields and their results, and never talks to a device. Each measurement is shown
-as its measured-vs-commanded pose error the moment the engine has journaled it.
+as its measured-vs-commanded pose error the moment the engine has journaled it. An adaptive run's measure poses are
+not known in advance: each decision (``procedures.adaptive.progress``, a checkpoint) adds the next pose to the plan and
+brings the predicted accuracy and the forecast remaining time.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import numpy as np
 
 from hilcal.metrics import pose_errors
 from procedures import messages as m
+from procedures.adaptive import PROGRESS_LABEL
 from procedures.calibration_procedure import PRE_PHASES
 
 LABEL = re.compile(r"^(?P<phase>[a-z_]+) (?P<pose>\d+) (?P<step>[a-z_]+)$")
@@ -65,14 +69,26 @@ class RunView:
         self._done_here = 0
         self._current: object | None = None
         self._progress: dict[str, Any] = {}
+        self._after_measure = 0
+        self._measure_rows: int | None = None
+        """An adaptive run's measure rows as forecast (None: the plan's)."""
+        self._forecasting = False
+        """In an adaptive measure phase: the remaining time is the forecast's, not the ratio's."""
+        self._history: list[dict[str, Any]] = []
 
-    def show_plan(self, plan: Any, robot: Any, acceptance_poses: int = 0) -> None:
-        """The plan; `acceptance_poses` measurements of an acceptance test count in the progress too."""
-        self._poses = {"measure": plan.poses("measure"), "verify": plan.poses("verify")}
-        self.total = len(plan.measure_poses) + 2 * len(plan.verify_poses) + acceptance_poses
-        self.live.set("plan", {"robot": robot.name, "sha256": plan.sha256(), "measure": self._poses["measure"],
+    def show_plan(self, plan: Any, robot: Any, acceptance_poses: int = 0, adaptive: dict | None = None) -> None:
+        """The plan; `acceptance_poses` measurements of an acceptance test count in the progress too. An adaptive run
+        (`adaptive`: its options and best case) shows its measure poses as it chooses them."""
+        measure = np.zeros((0, 6)) if adaptive else plan.poses("measure")
+        self._poses = {"measure": measure, "verify": plan.poses("verify")}
+        self._after_measure = 2 * len(plan.verify_poses) + acceptance_poses
+        self._measure_rows = None if not adaptive else int(adaptive.get("best_rows") or 0)
+        self.total = (len(plan.measure_poses) if not adaptive else self._measure_rows) + self._after_measure
+        self.live.set("plan", {"robot": robot.name, "sha256": plan.sha256(), "measure": measure,
                                "verify": self._poses["verify"], "workspace": robot.workspace, "home": robot.home,
-                               "settle_s": plan.settle_s, "approach_mm": plan.approach_mm, "seed": plan.seed})
+                               "settle_s": plan.settle_s, "approach_mm": plan.approach_mm, "seed": plan.seed,
+                               "adaptive": adaptive})
+        self.live.set("adaptive", None if not adaptive else {"options": adaptive, "n_rows": 0})
 
     # ------------------------------------------------------------------ engine events
 
@@ -141,6 +157,37 @@ class RunView:
                            else "info")
         elif msg.label == "complete":
             self._set_progress(activity="verification done; writing the report")
+        elif msg.label == PROGRESS_LABEL:
+            self._on_decision(data)
+
+    def _on_decision(self, data: dict[str, Any]) -> None:
+        """An adaptive run's decision: its prediction in the history, the next pose in the plan, the forecast."""
+        p, stop = data.get("prediction"), data.get("stop")
+        if p is not None and all(h["n_rows"] != data["n_rows"] for h in self._history):
+            self._history.append({"n_rows": data["n_rows"], "max_mm": p["max_mm"], "low_mm": p["low_mm"],
+                                  "upper_mm": p["upper_mm"]})
+        options = (self.live.get("adaptive") or {}).get("options")
+        self.live.set("adaptive", {**data, "options": options, "history": self._history})
+        nxt = data.get("next")
+        poses = np.array([*data["poses"], *([nxt["pose"]] if nxt else [])], dtype=float).reshape(-1, 6)
+        self._poses["measure"] = poses
+        self.live.update("plan", measure=poses)
+        ahead = 0 if stop else ((data.get("forecast") or {}).get("n_rows") or 0)
+        self._measure_rows = data["n_rows"] + ahead
+        self.total = self._measure_rows + self._after_measure
+        self._forecasting = stop is None
+        if stop is not None:
+            self.live.note(f"adaptive plan stopped after {data['n_rows']} rows ({stop['kind']}): {stop['sentence']}")
+            self._set_progress(activity="measure phase done: " + stop["kind"].replace("_", " "))
+            return
+        span = data.get("remaining_measure_range_s")
+        after = data["after_measure_s"]
+        self._set_progress(
+            remaining_s=data.get("remaining_s"), updated_at=time.time(),
+            remaining_range_s=None if span is None else [span[0] + after, span[1] + after],
+            remaining_basis=f"the adaptive plan's forecast: {ahead} more measure rows, then the verify phases "
+                            "(machine-time estimate)" if span is None else "no noise known before the repeats: "
+                            "best case to budget (machine-time estimate)")
 
     # ------------------------------------------------------------------ progress
 
@@ -157,8 +204,10 @@ class RunView:
     def _at_pose(self, phase: str, index: int, activity: str) -> None:
         poses = self._poses.get(PLAN_PHASE.get(phase, phase))
         target = poses[index].tolist() if poses is not None and 0 <= index < len(poses) else None
+        size = self._measure_rows if phase == "measure" and self._measure_rows is not None else (
+            None if poses is None else len(poses))
         self._set_progress(phase=phase, phase_title=PHASE_TITLES.get(phase, phase), pose=index + 1,
-                           poses_in_phase=None if poses is None else len(poses), target=target, activity=activity)
+                           poses_in_phase=size, target=target, activity=activity)
 
     def _set_progress(self, **fields: Any) -> None:
         """Publish progress when something an operator reads changed; the estimate is redone per pose done."""
@@ -166,11 +215,13 @@ class RunView:
         self._progress.update(fields)
         self._progress["session_started_at"] = self._session_epoch
         done = len(self._done)
-        if done != before.get("done") or "remaining_s" not in before:
-            elapsed = 0.0 if self._session_t0 is None else time.monotonic() - self._session_t0
-            left = max(self.total - done, 0)
-            self._progress.update(done=done, total=self.total,
-                                  remaining_s=self.estimate(self._done_here, left, elapsed) if left else 0.0,
-                                  remaining_basis=self.estimate_basis, updated_at=time.time())
+        if done != before.get("done") or "remaining_s" not in before or self.total != before.get("total"):
+            self._progress.update(done=done, total=self.total)
+            if not self._forecasting:
+                elapsed = 0.0 if self._session_t0 is None else time.monotonic() - self._session_t0
+                left = max(self.total - done, 0)
+                self._progress.update(remaining_s=self.estimate(self._done_here, left, elapsed) if left else 0.0,
+                                      remaining_basis=self.estimate_basis, remaining_range_s=None,
+                                      updated_at=time.time())
         if self._progress != before:
             self.live.set("progress", self._progress)

@@ -63,23 +63,34 @@ class PanelSession:
         return self.control.confirm(text)
 
     def run_opened(self, *, run_id: str, plan: Any, robot: Any, out_dir: Path, journal: Any, devices: Any,
-                   resumed: bool, acceptance_poses: int = 0) -> None:
+                   resumed: bool, acceptance_poses: int = 0, adaptive: dict | None = None) -> None:
+        """The run's plan is known (`adaptive`: an adaptive run's options and best case, see RunView.show_plan)."""
         assert self.control is not None
         self.ctx.live_runs[run_id] = out_dir
         self.control.journal_event = journal.event
-        self.view.show_plan(plan, robot, acceptance_poses)
+        self.view.show_plan(plan, robot, acceptance_poses, adaptive)
         self.live.update("run", run_id=run_id, robot=robot.name, out_dir=str(out_dir), resumed=resumed,
                          operator=self.control.operator, status="waiting to start")
         self._monitor = StationMonitor(self.live, devices).start()
 
-    def wait_start(self) -> str:
-        """The operator starts (or continues) the run; NotStarted if they decline. Returns their name."""
+    def wait_start(self, plan: dict[str, Any] | None = None,
+                   check_plan: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> str:
+        """The operator starts (or continues) the run; NotStarted if they decline. Returns their name.
+
+        plan and check_plan: the measurement plan on the start form (see OperatorControl.wait_start); the one chosen
+        there is `start_plan` afterwards (None: unchanged)."""
         assert self.control is not None
         run = self.live.get("run")
         verb = "Continue the interrupted" if run.get("resumed") else "Start the"
-        operator = self.control.wait_start(f"{verb} calibration run {run.get('run_id')} on {run.get('robot')}?")
+        operator = self.control.wait_start(f"{verb} calibration run {run.get('run_id')} on {run.get('robot')}?",
+                                           plan, check_plan)
         self.live.update("run", operator=operator or None, status="running")
         return operator
+
+    @property
+    def start_plan(self) -> dict[str, Any] | None:
+        """The plan chosen on the start form ({adaptive, target_mm, max_minutes}), None if the form did not set one."""
+        return None if self.control is None else self.control.start_plan
 
     def finished(self, *, code: int, message: str, status: str, out_dir: Path | None,
                  report: dict[str, Any] | None) -> None:

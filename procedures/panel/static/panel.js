@@ -49,6 +49,7 @@ const RENDER = {
   upload: [renderUpload],
   result: [renderResult, renderControls],
   diagnosis: [renderDiagnosis],
+  adaptive: [renderAdaptive],
   timeline: [renderTimeline],
 };
 
@@ -157,7 +158,10 @@ function renderQuestion() {
   $("question-yes").textContent = yes;
   $("question-no").textContent = no;
   $("start-form").classList.toggle("hidden", p.kind !== "start");
-  if (p.kind === "start") $("operator-name").value = (p.detail && p.detail.operator) || "";
+  if (p.kind === "start") {
+    $("operator-name").value = (p.detail && p.detail.operator) || "";
+    showPlanForm((p.detail || {}).plan);
+  }
   $("upload-confirm-label").classList.toggle("hidden", p.kind !== "upload");
   $("upload-confirm").checked = false;
   $("question-yes").disabled = p.kind === "upload";
@@ -222,11 +226,38 @@ function uploadDetail(d) {
       <th>change mm</th></tr>${rows}</table></div>`;
 }
 
+// The start form's measurement plan: a new run's can change there (adaptive, its target and the whole run's time).
+function showPlanForm(plan) {
+  $("plan-form").classList.toggle("hidden", !plan);
+  if (!plan) return;
+  $("plan-adaptive").checked = !!plan.adaptive;
+  $("plan-target").value = plan.target_mm == null ? "" : plan.target_mm;
+  $("plan-minutes").value = plan.max_minutes == null ? "" : plan.max_minutes;
+  $("plan-minutes").placeholder = `the fixed plan's: ${fmt(plan.fixed_minutes, 1)}`;
+  for (const id of ["plan-adaptive", "plan-target", "plan-minutes"]) $(id).disabled = !plan.choosable;
+  $("plan-note").textContent = plan.choosable ? `The fixed plan takes about ${fmt(plan.fixed_minutes, 1)} min of ` +
+    "machine time; the adaptive one stops when the accuracy is proven, and always within the time given." :
+    "A resumed run goes on with the plan it started with.";
+  const toggle = () => $("plan-adaptive-options").classList.toggle("hidden", !$("plan-adaptive").checked);
+  $("plan-adaptive").onchange = toggle;
+  toggle();
+}
+
+function chosenPlan() {
+  const plan = ((S().prompt || {}).detail || {}).plan;
+  if (!plan || !plan.choosable) return undefined;
+  const number = (id) => ($(id).value === "" ? null : Number($(id).value));
+  return { adaptive: $("plan-adaptive").checked, target_mm: number("plan-target"), max_minutes: number("plan-minutes") };
+}
+
 async function answer(yes) {
   const p = S().prompt;
   if (!p || !p.open) return;
   const body = { answer: yes };
-  if (p.kind === "start") body.operator = $("operator-name").value;
+  if (p.kind === "start") {
+    body.operator = $("operator-name").value;
+    if (yes) body.plan = chosenPlan();
+  }
   if (p.kind === "upload" && yes) body.confirm_sha256 = p.detail.new_sha256;
   try {
     await post(`/api/questions/${p.id}`, body);
@@ -277,9 +308,57 @@ function tick() {
   const now = Date.now() / 1000;
   const end = FINAL.includes(status) && S().result ? S().result.finished_at || now : now;
   $("elapsed").textContent = dur(end - p.session_started_at);
-  const left = p.remaining_s == null ? null : Math.max(0, p.remaining_s - (status === "running" ? now - p.updated_at : 0));
-  $("remaining").innerHTML = left == null ? '<span class="sub">after the first pose</span>' :
-    `${dur(left)} <span class="sub">(${esc(p.remaining_basis)})</span>`;
+  const since = status === "running" && p.updated_at ? now - p.updated_at : 0;
+  const left = p.remaining_s == null ? null : Math.max(0, p.remaining_s - since);
+  const range = p.remaining_range_s;
+  $("remaining").innerHTML = range ? `${dur(Math.max(0, range[0] - since))} to ${dur(Math.max(0, range[1] - since))} ` +
+    `<span class="sub">(${esc(p.remaining_basis)})</span>` : left == null ?
+    '<span class="sub">after the first pose</span>' : `${dur(left)} <span class="sub">(${esc(p.remaining_basis)})</span>`;
+}
+
+// ---------------------------------------------------------------- adaptive plan
+
+function um(mm) {
+  return mm == null ? "-" : `${fmt(mm * 1000, 1)} µm`;
+}
+
+function renderAdaptive() {
+  const a = S().adaptive;
+  $("adaptive-card").classList.toggle("hidden", !a);
+  if (!a) return;
+  const o = a.options || {};
+  const p = a.prediction;
+  $("adaptive-rows").textContent = a.n_rows ? `${a.n_rows} (${a.distinct} distinct poses)` : "none yet";
+  $("adaptive-prediction").innerHTML = p ? `<b>${um(p.max_mm)}</b> median; 5-95 %: ${um(p.low_mm)} to ${um(p.upper_mm)}; ` +
+    `<b>below ${um(p.upper_mm)}</b> with ${fmt(100 * p.confidence, 0)} % confidence` :
+    '<span class="sub">no prediction before the rows identify the parameters</span>';
+  $("adaptive-rule").textContent = (o.target_mm != null ? `the 95 % bound below the target ${um(o.target_mm)}` :
+    "the 95 % bound improves by less than 5 % per row") + "; never before the diagnosis has its minimum; within " +
+    (a.measure_budget_s != null ? `${dur(a.measure_budget_s)} of measuring` : "the budget");
+  const f = a.forecast, range = a.remaining_measure_range_s;
+  $("adaptive-remaining").textContent = a.stop ? "measure phase done" : range ?
+    `${dur(range[0] + a.after_measure_s)} to ${dur(range[1] + a.after_measure_s)} (no noise known before the repeats)` :
+    a.remaining_s != null ? `${dur(a.remaining_s)}: ${f.n_rows} more measure rows (${dur(a.remaining_measure_s)}), ` +
+    `then the verify phases (${dur(a.after_measure_s)}); machine-time estimate` :
+    o.best_rows != null ? `${dur(o.run_best_s)} to ${dur(o.run_worst_s)} before motion` : "-";
+  $("adaptive-why").textContent = a.sentence || "-";
+  $("adaptive-stop").classList.toggle("hidden", !a.stop);
+  $("adaptive-stop").textContent = a.stop ? `Stopped: ${a.stop.kind.replace("_", " ")}. ${a.stop.sentence}` : "";
+  const h = a.history || [];
+  const svg = $("adaptive-plot");
+  const last = Math.max(...h.map((r) => r.n_rows), 1);
+  errorPlot(svg, [{ color: "var(--measure)", cls: "pt-adaptive",
+    points: h.map((r) => [r.n_rows, r.max_mm, `row ${r.n_rows}: median ${um(r.max_mm)}`]) },
+  { color: "var(--bad)", cls: "pt-bound", points: h.map((r) => [r.n_rows, r.upper_mm, `row ${r.n_rows}: 95 % bound ${um(r.upper_mm)}`]) }],
+  last, "rows measured");
+  if (h.length > 1) {
+    const box = svg.viewBox.baseVal;
+    const values = h.flatMap((r) => [r.max_mm, r.upper_mm]);
+    const [d0, d1] = SVG.logDomain(values);
+    const y = SVG.log(d0, d1, box.height - 20, 8), x = SVG.linear(0, last, 44, box.width - 8);
+    SVG.el(svg, "polyline", { points: h.map((r) => `${x(r.n_rows)},${y(r.upper_mm)}`).join(" "), fill: "none",
+      stroke: "var(--bad)", "stroke-width": 1.5, class: "adaptive-bound" });
+  }
 }
 
 // ---------------------------------------------------------------- plots
@@ -293,7 +372,7 @@ function planKey(phase, index) {
 }
 
 function buildPlanViews(plan) {
-  views.sha = plan.sha256;
+  views.sha = plan.sha256 + ":" + plan.measure.length;  // an adaptive run's measure poses grow as it chooses them
   views.marks = new Map();
   views.rows = new Map();
   views.shown = new Set();
@@ -326,7 +405,7 @@ function buildPlanViews(plan) {
 function renderPlan() {
   const plan = S().plan;
   if (!plan) return;
-  if (views.sha !== plan.sha256) buildPlanViews(plan);
+  if (views.sha !== plan.sha256 + ":" + plan.measure.length) buildPlanViews(plan);
   for (const m of S().measurements || []) {
     const id = `${m.phase}:${m.index}`;
     if (views.shown.has(id)) continue;

@@ -14,6 +14,7 @@ from hilcal.planning.machine_time import MotionRules, MotionTiming, estimate_rou
 from hilcal.planning.sequential import (
     AdaptiveSettings,
     AdaptiveState,
+    ChoiceMemo,
     adaptive_problem,
     decide,
     next_pose,
@@ -141,6 +142,16 @@ def test_the_forecast_after_the_repeats_is_the_run(run):
     assert abs(after_repeats.elapsed_s + predicted.remaining_s - state.elapsed_s) < 90.0
     before = time_range(problem)
     assert before.best_s <= state.elapsed_s + 1e-6 and before.worst_s == problem.settings.max_measure_s
+
+
+def test_a_memo_of_the_choices_changes_no_decision_and_no_forecast(run):
+    problem, _state, decisions, rows = run
+    memo = ChoiceMemo()
+    for k in (0, 4, 11, len(rows) - 2):  # the run forecasts after every row with one memo
+        state = replay(problem, rows[:k])
+        assert forecast(problem, state, memo=memo) == forecast(problem, state)
+        assert np.array_equal(decide(problem, state, memo).next.pose, decisions[k].next.pose)
+    assert len(memo) > len(rows) - 2, "the memo holds the choices the forecasts walked"
 
 
 def test_a_target_stops_below_it(robot, setup):

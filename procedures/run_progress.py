@@ -1,0 +1,60 @@
+"""How a run shows its progress at the terminal: a bar over the poses, and an adaptive run's decisions as lines.
+
+The bar counts measured poses; an adaptive run does not know its count in advance, so each decision (the
+``procedures.adaptive.progress`` checkpoint) prints its prediction and forecast above the bar and sets the bar's total
+to the rows so far plus those forecast plus the verify phases'.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+from typing import Any
+
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from procedures.adaptive import PROGRESS_LABEL, progress_line
+from procedures.messages import Checkpoint
+
+Observer = Callable[[str, dict], None]
+
+
+@contextlib.contextmanager
+def terminal_progress(total: int, done: int) -> Iterator[tuple[Callable[[dict], None], Progress, Any]]:
+    """The bar; yields (advance: call with each measured row, the Progress, its task)."""
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress(*columns, transient=False) as progress:
+        task = progress.add_task("measuring poses", total=total, completed=done)
+
+        def advance(row: dict) -> None:
+            progress.update(task, advance=1, description=f"{row['phase']} pose {row['index'] + 1}")
+
+        yield advance, progress, task
+
+
+def combine_observers(*observers: Observer | None) -> Observer | None:
+    """One engine observer calling each given one in turn (a panel's pause, raised by the first, still wins)."""
+    chosen = [o for o in observers if o is not None]
+    if len(chosen) <= 1:
+        return chosen[0] if chosen else None
+
+    def observe(kind: str, data: dict) -> None:
+        for o in chosen:
+            o(kind, data)
+
+    return observe
+
+
+def adaptive_lines(bar: Progress, task: Any, after_measure: int) -> Observer:
+    """An engine observer printing each adaptive decision above the bar and keeping the bar's total on forecast."""
+
+    def observe(kind: str, data: dict) -> None:
+        msg = data.get("message")
+        if kind != "message" or not isinstance(msg, Checkpoint) or msg.label != PROGRESS_LABEL:
+            return
+        shown = msg.data or {}
+        ahead = 0 if shown.get("stop") else ((shown.get("forecast") or {}).get("n_rows") or 0)
+        bar.update(task, total=shown["n_rows"] + ahead + after_measure)
+        bar.console.print(progress_line(shown), highlight=False, markup=False, soft_wrap=True)
+
+    return observe
