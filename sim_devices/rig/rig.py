@@ -25,6 +25,9 @@ from sim_devices.rig.config import RigConfig
 from sim_devices.rig.unlisted_config import TIME_DEPENDENT_EFFECTS
 
 FK_TOLERANCE_MM = 1e-9
+NEWTON_TOLERANCE_MM = 1e-11
+"""Newton stops when every leg is within this of its target (well inside FK_TOLERANCE_MM)."""
+NEWTON_MAX_STEPS = 12
 POSE_CONVERGENCE_MM = 1e-9
 MAX_EFFECT_ITERATIONS = 50
 
@@ -178,10 +181,20 @@ class SimulatedRig:
         start_t_mm: np.ndarray,
         corrections_mm: np.ndarray | None = None,
     ) -> tuple[Rotation, np.ndarray]:
-        """FK of the true geometry; unknowns: rotation vector relative to start_rotation (rad), t (mm)."""
+        """FK of the true geometry: Newton steps with the exact Jacobian from the start pose (quadratic, a few
+        steps from a warm start); Levenberg-Marquardt from the same start where Newton does not converge."""
         target = self.true_lengths(reported_mm)
         if corrections_mm is not None:
             target = target + corrections_mm
+        solved = _newton_fk(self.a_true, self.b_true, target, start_rotation.as_matrix(), start_t_mm)
+        if solved is not None:
+            return Rotation.from_matrix(solved[0]), solved[1]
+        return self._solve_fk_lm(target, start_rotation, start_t_mm, reported_mm)
+
+    def _solve_fk_lm(
+        self, target: np.ndarray, start_rotation: Rotation, start_t_mm: np.ndarray, reported_mm: np.ndarray
+    ) -> tuple[Rotation, np.ndarray]:
+        """FK by Levenberg-Marquardt; unknowns: rotation vector relative to start_rotation (rad), t (mm)."""
         a, b = self.a_true, self.b_true
 
         def residual(x: np.ndarray) -> np.ndarray:
@@ -375,3 +388,39 @@ class SimulatedRig:
             )
             noisy.append(points + noise)
         return noisy[0], noisy[1]
+
+
+def _rotation_step(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector w (rad), by Rodrigues' formula."""
+    angle = float(np.linalg.norm(w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if angle < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(angle) / angle * K + (1.0 - np.cos(angle)) / angle**2 * (K @ K)
+
+
+def _newton_fk(
+    a: np.ndarray, b: np.ndarray, target_mm: np.ndarray, R: np.ndarray, t_mm: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Rigid FK by Newton's method: leg i's length |R a_i + t - b_i| changes by u_i . dt + (R a_i x u_i) . w for a
+    small rotation w applied on the left and a shift dt. None when it does not reach FK_TOLERANCE_MM in a few
+    steps (far start, near a singularity): the caller falls back to a damped solver."""
+    t = np.array(t_mm, dtype=float)
+    for _ in range(NEWTON_MAX_STEPS):
+        p = a @ R.T
+        d = p + t - b
+        lengths = np.linalg.norm(d, axis=1)
+        r = lengths - target_mm
+        if float(np.max(np.abs(r))) < NEWTON_TOLERANCE_MM:
+            return R, t
+        u = d / lengths[:, None]
+        J = np.hstack([np.cross(p, u), u])
+        try:
+            step = np.linalg.solve(J, -r)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(step)) or float(np.linalg.norm(step[:3])) > 0.5:
+            return None
+        R = _rotation_step(step[:3]) @ R
+        t = t + step[3:]
+    return None

@@ -8,12 +8,15 @@ from __future__ import annotations
 
 from procedures.cli.sim_station import SIM_TIMING
 
-INSTANT_SIM = """
+DEVICES_INSTANT = """
 [controller]
 time_scale = 100000.0
 [cmm]
 time_scale = 0.0
-[rig.temperature]
+"""
+"""The servo and the CMM near-instant, for a configuration that has its own [rig] (a twin's)."""
+
+INSTANT_SIM = DEVICES_INSTANT + """[rig.temperature]
 drift_k_per_h = 0.0
 amplitude_k = 0.0
 """

@@ -23,6 +23,7 @@ from hilcal.robot import default_robot, load_robot
 from procedures.cli.simulated_recording import simulate_with_truth
 from procedures.cli.twin import compare, write_twin
 from sim_devices.rig.config import RigConfig
+from tests.cli.sim_speed import DEVICES_INSTANT
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks" / "studies"))
@@ -104,7 +105,11 @@ def test_the_twin_is_what_simulate_and_run_sim_read(tmp_path):
     assert simulated.returncode == 0, simulated.stderr
     robot = load_robot(robot_path)
     assert diagnose(read_recording(tmp_path / "twin.csv", robot), robot).effect == "joint_backlash"
-    run = _hilcal("run", "--sim", "--yes", "--sim-config", str(report / "sim_config.toml"), "--robot",
+    paced = report / "twin_instant.toml"  # beside it (its robot file is relative): the devices near-instant
+    twin_config = (report / "sim_config.toml").read_text()
+    assert "drift_k_per_h = 0.0" in twin_config  # the rig's clock follows the fast servo: a drift would be scaled
+    paced.write_text(twin_config + DEVICES_INSTANT)
+    run = _hilcal("run", "--sim", "--yes", "--sim-config", str(paced), "--robot",
                   str(robot_path), "--out", str(tmp_path / "run"), "--records", str(tmp_path / "records.sqlite"),
                   cwd=tmp_path)
     assert run.returncode == 0, run.stdout + run.stderr

@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from tests.cli.link_support import gap_log, journal_rows, late_commands, run_hilcal, sim_config
+from tests.cli.links.link_support import gap_log, journal_rows, late_commands, run_hilcal, sim_config
 
 
 @pytest.mark.timeout(900)

@@ -1,6 +1,6 @@
 """The end-of-run summary read from report.json: figures as the report has them, what was uploaded (the compensation
 mode and, when the report has one, the physics it corrected), the verdict, and keys a run did not reach said as
-such. Reports are written here by hand; the whole run's summary is checked in tests/cli/test_certificate.py."""
+such. Reports are written here by hand; the whole run's summary is checked in tests/cli/run/test_certificate.py."""
 
 from __future__ import annotations
 

@@ -16,7 +16,7 @@ import pytest
 from hilcal.kinematics import Geometry, forward_kinematics, inverse_kinematics
 from hilcal.robot import Robot, default_robot
 from tests.cli.browser_support import require_chromium
-from tests.cli.certificate_support import OPERATOR, REPEATABILITY_MM, STATION, hilcal, pdf_text
+from tests.cli.run.certificate_support import OPERATOR, REPEATABILITY_MM, STATION, hilcal, pdf_text
 from tests.cli.sim_speed import INSTANT_SIM
 
 pytestmark = pytest.mark.timeout(420)

@@ -16,7 +16,7 @@ import re
 import pytest
 
 from tests.cli.browser_support import chromium, free_port, require_chromium, text, wait_for
-from tests.cli.panel_support import collect_latency, done_count, journal_rows, page_view, start_panel_run, stop
+from tests.cli.panel.panel_support import collect_latency, done_count, journal_rows, page_view, start_panel_run, stop
 
 
 @pytest.fixture(autouse=True)

@@ -1,8 +1,10 @@
 """`hilcal run --sim --panel` in headless Chromium, the adaptive plan chosen on the start form: the page shows the live
 predicted accuracy with its band, the forecast remaining time, the poses as the plan chooses them, and the stop.
 
-The run's pace is not what is tested, so the simulator is the near-instant one (tests/cli/sim_speed.py). Once the
-measure phase has stopped the run is ended (the whole run from the page is tests/cli/test_panel_browser.py's).
+The run's pace is not what is tested, so the servo is the near-instant one (tests/cli/sim_speed.py); the CMM probes
+at 1/150 of real time (about 0.15 s a pose), so a live prediction stays on the page long enough for a busy machine's
+browser to read it before the stop. Once the measure phase has stopped the run is ended (the whole run from the page
+is tests/cli/panel/test_panel_browser.py's).
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ import pytest
 
 from tests.cli.browser_support import LATENCIES_S, chromium, free_port, require_chromium, text, wait_for
 from tests.cli.sim_speed import INSTANT_SIM, instant_timing
+
+CMM_PACE = 1 / 150
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -38,7 +42,9 @@ def _answer(browser, title: str) -> None:
 
 
 def test_the_panel_starts_an_adaptive_run_and_shows_its_prediction_and_remaining_time(tmp_path: Path) -> None:
-    (tmp_path / "sim.toml").write_text(INSTANT_SIM)
+    config = INSTANT_SIM.replace("[cmm]\ntime_scale = 0.0", f"[cmm]\ntime_scale = {CMM_PACE}")
+    assert str(CMM_PACE) in config
+    (tmp_path / "sim.toml").write_text(config)
     (tmp_path / "station.toml").write_text(instant_timing())
     out, port = tmp_path / "run", free_port()
     log = tmp_path / "cli.log"

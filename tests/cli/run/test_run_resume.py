@@ -4,8 +4,8 @@ The station's devices are a simulator that runs on while the runner is killed an
 and its CMM do when the shop-floor PC's process dies. Every resume must end in a complete run with the full set of
 measurements and no duplicates, and the simulated controller's live parameter set and compensation block must always
 be exactly the old or the new pair (the rig's transducers have gain errors, so the run uploads a block with the
-geometry). A `--sim` run restarts its own simulator on resume: tests/cli/test_link_guard.py and the panel's browser
-test resume those.
+geometry). A `--sim` run restarts its own simulator on resume: tests/cli/links/test_link_guard.py and the panel's
+browser test resume those.
 """
 
 from __future__ import annotations

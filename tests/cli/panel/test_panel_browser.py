@@ -14,7 +14,7 @@ import sqlite3
 import pytest
 
 from tests.cli.browser_support import chromium, free_port, require_chromium, text, wait_for
-from tests.cli.panel_support import collect_latency, journal_rows, start_panel_run, stop
+from tests.cli.panel.panel_support import collect_latency, journal_rows, start_panel_run, stop
 from tests.cli.sim_speed import INSTANT_SIM
 
 SCALE_FAULT = """

@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 
 from procedures.cli.app import app
 from tests.cli.browser_support import chromium, require_chromium, text
-from tests.cli.certificate_support import OPERATOR, hilcal, pdf_text
+from tests.cli.run.certificate_support import OPERATOR, hilcal, pdf_text
 from tests.cli.sim_speed import INSTANT_SIM, instant_timing
 
 pytestmark = pytest.mark.timeout(420)
@@ -120,7 +120,7 @@ def test_the_simulated_station_states_its_cmm_and_example_limits(accepted: tuple
 
 def test_the_run_ends_with_its_summary(accepted: tuple[Path, subprocess.CompletedProcess]) -> None:
     """The last thing printed: the verification poses before and after (± U) as report.json has them, what was
-    uploaded, the verdict and where the report and certificate are."""
+    uploaded, what the physics step found, the verdict and where the report and certificate are."""
     tmp, done = accepted
     report = json.loads((tmp / "run" / "report.json").read_text())
     lines = done.stdout.rstrip().splitlines()
@@ -139,9 +139,11 @@ def test_the_run_ends_with_its_summary(accepted: tuple[Path, subprocess.Complete
                        f"{after['value']:.{decimals}f} ± {after['U']:.{decimals}f}")
     assert summary[7].startswith("uploaded mode full: joint positions a, b and leg offsets l0")
     assert report["upload"]["record"]["params_sha256"][:12] in summary[8]
-    assert summary[9] == "verdict pass (4 limits, iso14253-1 decision rule)"
-    assert summary[10] == f"report {tmp / 'run' / 'report.html'} (and report.json)"
-    assert summary[11].startswith(f"certificate {tmp / 'run' / 'certificate.'}") and len(summary) == 12
+    noise_um = report["physics"]["noise_mm"] * 1000  # the demo machine has no physics beyond the geometry
+    assert summary[9] == f"physics: nothing beyond the geometry (noise yardstick {noise_um:.1f} µm)"
+    assert summary[10] == "verdict pass (4 limits, iso14253-1 decision rule)"
+    assert summary[11] == f"report {tmp / 'run' / 'report.html'} (and report.json)"
+    assert summary[12].startswith(f"certificate {tmp / 'run' / 'certificate.'}") and len(summary) == 13
 
 
 def test_a_limit_the_demo_machine_cannot_meet_fails(strict: tuple[Path, subprocess.CompletedProcess]) -> None:
