@@ -6,7 +6,8 @@ fresh machine). Times the venv's installation (`make venv`) and the rest of `mak
 pytest) separately, and writes docs/benchmarks_tests.md with the 20 slowest tests.
 
 Run ``python benchmarks/bench_tests.py`` (uncommitted changes are not measured: commit first). ``--here`` runs
-only pytest, as `make test` does, in this checkout. The target of issue 22 is `make test` <= 5 min on 2 cores.
+only pytest, as `make test` does, in this checkout. Targets: `make test` <= 5 min on 2 cores (issue 22), and pytest's
+own wall <= 190 s here (issue 29: 5 min on a machine 1.6x slower, with margin).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from _docs import write_doc
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_S = 300.0
+TARGET_PYTEST_S = 190.0
 
 
 def _timed(cmd: Sequence[str], cwd: Path, env: dict[str, str]) -> tuple[float, subprocess.CompletedProcess[str]]:
@@ -74,8 +76,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     summary = re.findall(r"(\d+ (?:passed|failed).*?) in ([\d.]+)s", output)
     slowest = re.findall(r"^([\d.]+)s (call|setup|teardown)\s+(\S+)$", output, flags=re.M)[:20]
     failed = re.findall(r"^FAILED (\S+)", output, flags=re.M)
+    pytest_s = float(summary[-1][1]) if summary else None
+    verdict = "met" if pytest_s is not None and pytest_s <= TARGET_PYTEST_S and code == 0 else "**not met**"
     lines += [f"- pytest: {summary[-1][0] if summary else 'no summary'} in {summary[-1][1] if summary else '?'} s "
-              f"(exit code {code}).",
+              f"(exit code {code}; target <= {TARGET_PYTEST_S:.0f} s of pytest: {verdict}).",
               *[f"- Failed: `{name}`" for name in failed],
               "", "| seconds | phase | test |", "|---:|---|---|"]
     lines += [f"| {s} | {phase} | `{name}` |" for s, phase, name in slowest]
