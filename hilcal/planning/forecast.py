@@ -10,7 +10,6 @@ noise's size), the worst case is the budget; with an assumed noise (the CMM's st
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -22,10 +21,6 @@ from hilcal.planning.sequential import (
     AdaptiveState,
     ChoiceMemo,
     MeasuredRow,
-    PoseChoice,
-    accuracy,
-    choose,
-    minimum_for,
     mode_for,
 )
 from hilcal.planning.stopping import StopKind
@@ -56,11 +51,11 @@ def forecast(problem: AdaptiveProblem, state: AdaptiveState, noise: PoseNoise | 
     memo: the run's choices so far (``ChoiceMemo``): a forecast after every row then computes only the predictions.
     """
     with threadpool_limits(limits=1, user_api="blas"):
-        return _forecast(problem, state, noise, best_case, choose if memo is None else memo.choose)
+        return _forecast(problem, state, noise, best_case, ChoiceMemo() if memo is None else memo)
 
 
 def _forecast(problem: AdaptiveProblem, state: AdaptiveState, noise: PoseNoise | None, best_case: bool,
-              pick: Callable[..., PoseChoice | None]) -> Forecast:
+              memo: ChoiceMemo) -> Forecast:
     dof = 3.0 * problem.settings.repeats
     unit = PoseNoise.isotropic(1.0, 1.0, dof, dof, "unit noise (the improvement rule does not depend on its size)")
     level = state.noise or noise or unit
@@ -70,17 +65,17 @@ def _forecast(problem: AdaptiveProblem, state: AdaptiveState, noise: PoseNoise |
     budget = problem.settings.max_measure_s
     while True:
         if len(poses):
-            minimum = minimum_for(problem, poses)
+            minimum = memo.minimum(problem, poses)
             sim = AdaptiveState(sim.rows, elapsed, None, level, None, None, minimum, state.screening,
                                 minimum.library_efficiency)
             if minimum.met and not sim.diagnosis_pending(problem):
-                prediction, rule = accuracy(problem, poses, level)
+                prediction, rule = memo.accuracy(problem, poses, level)
                 if (prediction is not None) if best_case else rule.met:
                     return Forecast(len(poses) - state.n_rows, elapsed - state.elapsed_s, rule.kind or "target",
                                     None if prediction is None else prediction.upper_mm, level.source)
-        choice = pick(problem, poses, candidates, mode_for(problem, sim))
+        choice = memo.choose(problem, poses, candidates, mode_for(problem, sim))
         if choice is None or elapsed + choice.time_s > budget:
-            prediction = accuracy(problem, poses, level)[0] if len(poses) else None
+            prediction = memo.accuracy(problem, poses, level)[0] if len(poses) else None
             kind: StopKind = "budget" if prediction is not None else "not_identifiable"
             return Forecast(len(poses) - state.n_rows, elapsed - state.elapsed_s, kind,
                             None if prediction is None else prediction.upper_mm, level.source)

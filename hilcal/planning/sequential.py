@@ -394,16 +394,45 @@ class ChoiceMemo:
 
     def __init__(self) -> None:
         self._choices: dict[tuple[bytes, tuple[int, ...], str], PoseChoice | None] = {}
+        self._predictions: dict[tuple[bytes, PoseNoise | None], VerifyPrediction | None] = {}
+        self._minima: dict[bytes, DiagnosisMinimum] = {}
 
     def choose(self, problem: AdaptiveProblem, poses: np.ndarray, candidates: list[int], mode: Mode
                ) -> PoseChoice | None:
-        key = (np.ascontiguousarray(poses, dtype=float).tobytes(), tuple(candidates), mode)
+        key = (_rows_key(poses), tuple(candidates), mode)
         if key not in self._choices:
             self._choices[key] = choose(problem, poses, candidates, mode)
         return self._choices[key]
 
+    def accuracy(self, problem: AdaptiveProblem, poses: np.ndarray, noise: PoseNoise | None
+                 ) -> tuple[VerifyPrediction | None, RuleCheck]:
+        """``accuracy`` with each prediction computed once per rows and noise: a forecast's rule compares the rows
+        with the rows a window earlier, and the forecasts after later rows walk the same rows under the same noise."""
+        s = problem.settings
+        prediction = self._prediction(problem, poses, noise)
+        earlier = self._prediction(problem, poses[:-s.window], noise) if len(poses) > s.window else None
+        return prediction, accuracy_rule(prediction, earlier, s.window, s.target_mm, s.min_improvement)
+
+    def minimum(self, problem: AdaptiveProblem, poses: np.ndarray) -> DiagnosisMinimum:
+        """``minimum_for``, once per rows."""
+        key = _rows_key(poses)
+        if key not in self._minima:
+            self._minima[key] = minimum_for(problem, poses)
+        return self._minima[key]
+
+    def _prediction(self, problem: AdaptiveProblem, poses: np.ndarray, noise: PoseNoise | None
+                    ) -> VerifyPrediction | None:
+        key = (_rows_key(poses), noise)
+        if key not in self._predictions:
+            self._predictions[key] = _prediction(problem, poses, noise)
+        return self._predictions[key]
+
     def __len__(self) -> int:
         return len(self._choices)
+
+
+def _rows_key(poses: np.ndarray) -> bytes:
+    return np.ascontiguousarray(poses, dtype=float).tobytes()
 
 
 def next_pose(problem: AdaptiveProblem, state: AdaptiveState, memo: ChoiceMemo | None = None) -> PoseChoice | None:
