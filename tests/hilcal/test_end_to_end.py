@@ -16,11 +16,12 @@ from hilcal.planning import design
 from hilcal.recording import write_recording
 from procedures.cli.simulated_recording import simulate_recording
 from sim_devices.rig.config import RigConfig, load_errors
+from tests.poses import default_design
 
 
 @pytest.fixture(scope="module")
 def plan(robot):
-    return design.factorial_exchange(robot, 32, np.random.default_rng(0)).poses
+    return default_design(32, 0)
 
 
 def _ratios(robot, plan, seed: int) -> tuple[float, float, float]:

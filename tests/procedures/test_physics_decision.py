@@ -12,6 +12,7 @@ from hilcal.robot import Robot
 from procedures.cli.simulated_recording import simulate_recording
 from procedures.physics import ControllerInfo, decide
 from sim_devices.rig.config import EffectsConfig, RigConfig, load_errors
+from tests.poses import default_design
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -19,7 +20,7 @@ pytestmark = pytest.mark.timeout(180)
 def recording(robot: Robot, effects: dict, seed: int):
     config = RigConfig(seed=seed, errors=load_errors("table2", robot), cmm_noise_mm=0.002,
                        effects=EffectsConfig.model_validate(effects))
-    measure = design.factorial_exchange(robot, 32, np.random.default_rng(seed)).poses
+    measure = default_design(32, seed)
     rec = simulate_recording(robot, config, measure, design.verification_poses(robot, 16, seed))
     return rec, calibrate(rec, robot)
 

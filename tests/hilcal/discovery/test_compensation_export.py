@@ -31,6 +31,7 @@ from hilcal.robot import load_robot
 from procedures.cli.simulated_recording import simulate_with_truth
 from sim_devices.rig.config import RigConfig, load_errors
 from sim_devices.rig.unlisted_concealed import concealed_unlisted_config
+from tests.poses import default_design
 
 ROOT = Path(__file__).resolve().parents[3]
 EXAMPLE = ROOT / "examples" / "electric_hexapod"
@@ -100,7 +101,7 @@ def test_the_electric_example_round_trips_to_a_micrometre(tmp_path):
 
 @pytest.mark.parametrize("name", ["cyclic_stroke_error", "hooke_joint_offset"])
 def test_unexplained_shapes_round_trip_to_a_micrometre(robot, name, tmp_path):
-    plan = design.factorial_exchange(robot, 32, np.random.default_rng(0)).poses
+    plan = default_design(32, 0)
     config = RigConfig(seed=301, errors=load_errors("table2", robot), effects=concealed_unlisted_config(name, 1.0, 301))
     rec, _ = simulate_with_truth(robot, config, plan, design.verification_poses(robot, 24, 0))
     _check_round_trip(robot, rec, tmp_path)

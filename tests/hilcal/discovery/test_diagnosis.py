@@ -20,6 +20,7 @@ from procedures.cli.app import app
 from procedures.cli.simulated_recording import simulate_with_truth
 from sim_devices.rig.config import EffectsConfig, RigConfig, concealed_effect_config, load_errors, random_errors
 from sim_devices.rig.physics import axial_leg_forces_kn
+from tests.poses import default_design
 
 SEED = 1
 EFFECTS = ["leg_compliance", "sensor_scale", "thermal_expansion", "joint_backlash", "oil_column_compliance"]
@@ -29,7 +30,7 @@ COMPANIONS = {"oil_column_compliance": {"leg_compliance"}}
 
 @pytest.fixture(scope="module")
 def plan(robot):
-    return design.factorial_exchange(robot, 32, np.random.default_rng(0)).poses
+    return default_design(32, 0)
 
 
 def _record(robot, plan, effects: list[str], seed: int = SEED, **config):

@@ -21,6 +21,7 @@ from procedures.cli.app import app
 from procedures.cli.simulated_recording import simulate_with_truth
 from sim_devices.rig.config import RigConfig, load_errors
 from sim_devices.rig.unlisted_concealed import UNLISTED_EFFECT_NAMES, concealed_unlisted_config
+from tests.poses import default_design
 
 SEED = 301
 VARIABLE_OF = {"transducer_bow": {"stroke", "stroke_cyclic"}, "cyclic_stroke_error": {"stroke_cyclic"},
@@ -31,7 +32,7 @@ VARIABLE_OF = {"transducer_bow": {"stroke", "stroke_cyclic"}, "cyclic_stroke_err
 
 @pytest.fixture(scope="module")
 def plan(robot):
-    return design.factorial_exchange(robot, 32, np.random.default_rng(0)).poses
+    return default_design(32, 0)
 
 
 def _record(robot, plan, name: str):
