@@ -15,6 +15,7 @@ from scipy.optimize import least_squares
 from hilcal.error_models import GEOMETRIC_42, pose_difference
 from hilcal.identification import IdentificationResult
 from hilcal.kinematics import Geometry, forward_kinematics, inverse_kinematics
+from hilcal.leg_compensation import LegCompensation
 from hilcal.metrics import AccuracySummary
 from hilcal.robot import Robot
 
@@ -30,6 +31,45 @@ class ControllerGeometry:
     def ik_geometry(self) -> Geometry:
         """Geometry for host-side inverse kinematics in controller units (setpoint = stroke + l0)."""
         return Geometry(self.a, self.b)
+
+
+@dataclass(frozen=True)
+class OutOfReach:
+    """A pose the controller cannot drive to with a parameter set (and block): a leg's raw stroke outside its travel."""
+
+    index: int
+    leg: int
+    stroke_mm: float
+    min_mm: float
+    max_mm: float
+
+    def sentence(self, what: str) -> str:
+        side = f"above its {self.max_mm:.3f} mm" if self.stroke_mm > self.max_mm else f"below its {self.min_mm:.3f} mm"
+        return (f"{what} {self.index + 1} is beyond leg {self.leg + 1}'s travel with the new parameters: it needs a "
+                f"raw stroke of {self.stroke_mm:.3f} mm, {side}")
+
+
+def out_of_reach(robot: Robot, geometry: ControllerGeometry, comp: LegCompensation | None, poses: np.ndarray,
+                 approach_mm: float = 0.0) -> list[OutOfReach]:
+    """Poses [N, 6] whose setpoints under `geometry` (and the block `comp`, approached with every leg extending
+    from approach_mm below) need a raw stroke outside the legs' travel, the robot's leg limits less its nominal l0
+    (docs/protocols.md: the limits apply to the raw stroke). One entry per pose, for its worst leg."""
+    q = np.atleast_2d(np.asarray(poses, dtype=float))
+    if not len(q):
+        return []
+    lengths = inverse_kinematics(geometry.ik_geometry(), q)
+    if comp is None or comp.is_zero:
+        strokes = lengths - geometry.l0
+    else:
+        strokes = comp.raw_strokes_mm(lengths, geometry.l0, direction=np.ones_like(lengths))
+    l0_nominal = np.asarray(robot.l0, dtype=float)
+    lo, hi = robot.leg_limits[0] - l0_nominal, robot.leg_limits[1] - l0_nominal
+    over = np.maximum(strokes - hi, lo - (strokes - approach_mm))
+    found = []
+    for k in np.flatnonzero((over > 0).any(axis=1)):
+        leg = int(np.argmax(over[k]))
+        found.append(OutOfReach(int(k), leg, float(strokes[k, leg]), float(lo[leg]), float(hi[leg])))
+    return found
 
 
 @dataclass(frozen=True)

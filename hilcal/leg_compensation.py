@@ -81,6 +81,20 @@ class LegCompensation:
             out = out + self.thermal_ppm_per_k * 1e-6 * (l0_mm + s) * dt
         return out
 
+    def raw_strokes_mm(self, lengths_mm: np.ndarray, l0_mm: np.ndarray, direction: np.ndarray | None = None,
+                       iterations: int = 50) -> np.ndarray:
+        """The raw strokes [N, 6] at which the corrected length l0 + s + corrections equals `lengths_mm` [N, 6]: what
+        the servo drives to for these setpoints (fixed-point iteration; the scale and table are small slopes).
+        The force and thermal terms are left out: they need the readings at the reached pose."""
+        L = np.atleast_2d(np.asarray(lengths_mm, dtype=float))
+        s = L - l0_mm
+        for _ in range(iterations):
+            new = L - l0_mm - self.corrections_mm(s, l0_mm, direction=direction)
+            if float(np.max(np.abs(new - s), initial=0.0)) < 1e-9:
+                return new
+            s = new
+        return s
+
     def resampled(self, start_mm: np.ndarray, end_mm: np.ndarray, points: int) -> LegCompensation:
         """The same corrections with the table on `points` equally spaced points over [start, end] per leg (the
         present table is evaluated there, held at its ends)."""

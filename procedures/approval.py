@@ -93,6 +93,7 @@ def approval_lines(detail: dict[str, Any]) -> list[str]:
     block = detail.get("compensation_block")
     if block:
         lines.append("compensation block: " + block_summary(block))
+    lines += [f"out of reach: {sentence}" for sentence in detail.get("out_of_reach") or []]
     lines.append(f"{'parameter':<14} {'live (mm)':>12} {'new (mm)':>12} {'change (mm)':>12}")
     lines += [f"{d['name']:<14} {d['live_mm']:12.4f} {d['new_mm']:12.4f} {d['delta_mm']:+12.4f}"
               for d in detail.get("diff", [])]

@@ -21,7 +21,7 @@ import numpy as np
 
 from drivers.controller_modbus import CompensationBlock, ParameterSet
 from hilcal.calibration import CalibrationOutcome, calibrate
-from hilcal.compensation import Compensation, ControllerGeometry, compensate
+from hilcal.compensation import Compensation, ControllerGeometry, compensate, out_of_reach
 from hilcal.kinematics import forward_kinematics, inverse_kinematics
 from hilcal.leg_compensation import LegCompensation
 from hilcal.planning import design
@@ -66,6 +66,7 @@ class ProcedureResult:
     before_params: ParameterSet | None = None
     upload: dict | None = None
     after_rows: list[dict] = field(default_factory=list)
+    out_of_reach: list[str] = field(default_factory=list)
     acceptance_rows: list[dict] = field(default_factory=list)
     physics: PhysicsDecision | None = None
     block: CompensationBlock | None = None
@@ -157,10 +158,11 @@ def return_home(geom: ControllerGeometry, pose: np.ndarray, robot: Robot, plan: 
 
 
 def _measure_phase(phase: str, poses: np.ndarray, geom: ControllerGeometry, pose: np.ndarray,
-                   plan: CalibrationPlan) -> Generator[Any, Any, np.ndarray]:
-    """Visit and measure the phase's poses not yet in the journal; checkpoints time the phase (first start kept)."""
+                   plan: CalibrationPlan, skip: frozenset[int] = frozenset()) -> Generator[Any, Any, np.ndarray]:
+    """Visit and measure the phase's poses not yet in the journal (nor in `skip`: out of the machine's reach);
+    checkpoints time the phase (first start kept)."""
     done = {row["index"] for row in (yield m.Recall((phase,)))}
-    todo = [k for k in range(len(poses)) if k not in done]
+    todo = [k for k in range(len(poses)) if k not in done and k not in skip]
     if todo and not done:
         yield m.Checkpoint(f"phase_start:{phase}")
     for k in todo:
@@ -251,17 +253,22 @@ def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptio
         result.compensation = dataclasses.replace(result.compensation, parameters=shifted)
         result.block = to_block(physics.block)
     new_params = to_parameter_set(result.compensation.parameters)
+    reach = out_of_reach(robot, result.compensation.parameters, physics.block, plan.poses("verify"), plan.approach_mm)
+    result.out_of_reach = [r.sentence("verify pose") + ": it is not measured after the upload" for r in reach]
     what = result.compensation.mode.replace("_", " ") + (" and compensation block" if result.block else "")
     yield m.Checkpoint("identified", {"estimator": options.estimator, "mode": result.compensation.mode,
                                       "problems": result.problems, "physics": physics.to_json(),
+                                      "out_of_reach": result.out_of_reach,
                                       "identification": identification_summary(result)})
+    detail = approval_detail(before, new_params, result.block, result.compensation, result.outcomes[result.chosen],
+                             result.chosen, physics, robot, samples)
     yield m.Prompt("upload", f"Upload the {what} ({options.estimator}) to the controller?",
-                   approval_detail(before, new_params, result.block, result.compensation,
-                                   result.outcomes[result.chosen], result.chosen, physics, robot, samples))
+                   {**detail, "out_of_reach": result.out_of_reach})
     yield m.Disable()
     result.upload = yield m.Upload(new_params, options.save, result.block)
     yield m.Enable()
-    pose = yield from _measure_phase(AFTER_PHASE, plan.poses("verify"), result.compensation.parameters, pose, plan)
+    pose = yield from _measure_phase(AFTER_PHASE, plan.poses("verify"), result.compensation.parameters, pose, plan,
+                                     skip=frozenset(r.index for r in reach))
     if options.acceptance is not None:
         route, _ = options.acceptance.route()
         pose = yield from _measure_phase(ACCEPTANCE_PHASE, route, result.compensation.parameters, pose, plan)

@@ -102,10 +102,17 @@ def configure_logs(out_dir: Path) -> None:
     )
 
 
-def _per_pose(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+def _per_pose(rows: list[dict], n_poses: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Position and orientation error per row; with n_poses, per pose index (NaN where a pose was not measured)."""
     meas = np.array([r["meas"] for r in rows])
     cmd = np.array([r["cmd"] for r in rows])
-    return pose_errors(meas, cmd)
+    position, orientation = pose_errors(meas, cmd)
+    if n_poses is None:
+        return position, orientation
+    index = np.array([r["index"] for r in rows], dtype=int)
+    aligned = np.full((2, n_poses), np.nan)
+    aligned[0, index], aligned[1, index] = position, orientation
+    return aligned[0], aligned[1]
 
 
 def _summary(rows: list[dict]) -> AccuracySummary:
@@ -217,7 +224,8 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
         robot_name=robot.name, plan_sha256=plan.sha256(), started_at=started_at,
         finished_at=dt.datetime.now(dt.UTC).isoformat(),
         verify_before=_summary(verify_rows), verify_after=_summary(after_rows) if after_rows else None,
-        per_pose_before=_per_pose(verify_rows), per_pose_after=_per_pose(after_rows) if after_rows else None,
+        per_pose_before=_per_pose(verify_rows),
+        per_pose_after=_per_pose(after_rows, len(verify_rows)) if after_rows else None,
         identifications={k: o.identification for k, o in result.outcomes.items()},
         predicted_after={k: o.after for k, o in result.outcomes.items() if o.after is not None},
         chosen=result.chosen,
@@ -242,6 +250,7 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
         drift=drift,
         signoff=signoff,
         adaptive=result.adaptive if isinstance(result.adaptive, dict) and "summary" in result.adaptive else None,
+        warnings=tuple(result.out_of_reach),
     )
     json_path, _ = write_run_report(out_dir, report)
     journal.event("report", path=str(json_path))

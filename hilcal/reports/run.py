@@ -93,10 +93,12 @@ class RunReport:
 
 
 def _check_per_pose(what: str, per_pose: tuple[np.ndarray, np.ndarray], summary: AccuracySummary) -> None:
+    """One error per measured verification pose; NaN marks a pose not measured (out of the machine's reach)."""
     position_mm, orientation_deg = (np.asarray(a, dtype=float) for a in per_pose)
-    if position_mm.shape != (summary.n_poses,) or orientation_deg.shape != (summary.n_poses,):
-        raise ValueError(f"{what}: expected two arrays of {summary.n_poses} errors (one per verification pose), "
-                         f"got shapes {position_mm.shape} and {orientation_deg.shape}")
+    measured = int(np.isfinite(position_mm).sum()) if position_mm.ndim == 1 else -1
+    if position_mm.ndim != 1 or orientation_deg.shape != position_mm.shape or measured != summary.n_poses:
+        raise ValueError(f"{what}: expected two arrays with {summary.n_poses} errors (one per measured verification "
+                         f"pose), got shapes {position_mm.shape} and {orientation_deg.shape} with {measured} measured")
 
 
 # ------------------------------------------------------------------ JSON

@@ -47,10 +47,13 @@ def _figure(report: Mapping[str, Any], when: str, key: str, decimals: int) -> st
 def accuracy_rows(report: Mapping[str, Any]) -> Table:
     """The verification poses before and after calibration: max and RMS, position and orientation, ± U (k = 2)."""
     n_verify = (report.get("method") or {}).get("n_verify_poses")
+    after = ((report.get("per_pose") or {}).get("after") or {}).get("position_mm")
+    n_after = sum(v is not None for v in after) if isinstance(after, list) else None
     table = Table(box=None, pad_edge=False, show_edge=False, padding=(0, 2, 0, 0))
     table.add_column(f"{n_verify} verification poses" if isinstance(n_verify, int) else "verification poses")
     table.add_column("before", justify="right")
-    table.add_column("after", justify="right", style="bold")
+    table.add_column("after" if n_after is None or n_after == n_verify else f"after ({n_after} poses)",
+                     justify="right", style="bold")
     for key, label, unit, decimals in FIGURES:
         table.add_row(f"{label} ({unit})", _figure(report, "before", key, decimals),
                       _figure(report, "after", key, decimals))
@@ -130,6 +133,8 @@ def run_summary(report: Mapping[str, Any], report_path: Path, certificate_path: 
         facts.add_row("adaptive", Text(str(adaptive["summary"])))
     for n, line in enumerate(uploaded_lines(report)):
         facts.add_row("uploaded" if n == 0 else "", Text(line))
+    for n, line in enumerate(report.get("warnings") or []):
+        facts.add_row("warning" if n == 0 else "", Text(str(line)))
     facts.add_row("verdict", verdict_text(report))
     facts.add_row("report", Text(f"{report_path.with_suffix('.html')} (and {report_path.name})"))
     if certificate_path is not None:

@@ -219,6 +219,8 @@ function uploadDetail(d) {
       <tr><th>Parameter uncertainty in the workspace</th><td id="model-uncertainty">${spread(d.model_uncertainty)}
         <span class="sub">${esc(d.model_uncertainty_basis || "no covariance for this estimator")}</span></td></tr>
       ${d.uncompensated ? `<tr><th>Left uncompensated</th><td>${brief(d.uncompensated)}</td></tr>` : ""}
+      ${(d.out_of_reach || []).length ? `<tr><th>Out of reach after the upload</th><td id="out-of-reach">
+        ${d.out_of_reach.map(esc).join("<br>")}</td></tr>` : ""}
       <tr><th>Estimator, mode</th><td>${esc(d.estimator)}, ${esc(d.mode)}</td></tr>
       <tr><th>New set SHA-256</th><td><code id="upload-sha">${esc(d.new_sha256)}</code></td></tr></table>
     <p><b id="diff-count">${(d.diff || []).length}</b> parameters change:</p>
