@@ -62,8 +62,6 @@ Example::
 
 from __future__ import annotations
 
-import json
-import math
 import tomllib
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -79,6 +77,7 @@ from drivers.cmm_base import ProbingConfig, as_transform
 from drivers.cmm_serial import SerialCmm, SerialCmmConfig
 from drivers.controller_can import ControllerCan
 from drivers.controller_modbus import ControllerParams
+from hilcal.protocols.toml_text import toml_lines
 from hilcal.robot import Robot, RobotFileError, load_robot
 from procedures.link_guard import LinksSection
 from procedures.signoff import AcceptanceSection, CmmIdentity
@@ -249,34 +248,9 @@ def load_station(path: str | Path) -> StationConfig:
     return station_from_dict(data, source)
 
 
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            raise ValueError(f"TOML cannot hold {value}")
-        return repr(value)
-    if isinstance(value, str | Path):
-        return json.dumps(str(value))
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    raise TypeError(f"no TOML form for {type(value).__name__}")
-
-
-def _toml_table(data: dict[str, Any], prefix: str) -> list[str]:
-    lines = [f"{k} = {_toml_value(v)}" for k, v in data.items() if v is not None and not isinstance(v, dict)]
-    for k, v in data.items():
-        if isinstance(v, dict):
-            name = f"{prefix}.{k}" if prefix else k
-            lines += ["", f"[{name}]", *_toml_table(v, name)]
-    return lines
-
-
 def station_to_toml(station: StationConfig) -> str:
     """The station as TOML text (``load_station`` reads it back to an equal StationConfig)."""
-    return "\n".join(_toml_table(station.model_dump(mode="json", exclude_none=True), "")).lstrip("\n") + "\n"
+    return "\n".join(toml_lines(station.model_dump(mode="json", exclude_none=True), "")).lstrip("\n") + "\n"
 
 
 def save_station(station: StationConfig, path: str | Path) -> None:

@@ -28,8 +28,6 @@ Example configuration (every key optional; relative paths are relative to the fi
 
 from __future__ import annotations
 
-import json
-import math
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -37,6 +35,7 @@ from typing import Any
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from hilcal.protocols.toml_text import toml_lines
 from hilcal.robot import Robot
 from sim_devices.cmm.config import CmmServerConfig
 from sim_devices.controller.state_machine import ControllerSimConfig
@@ -177,41 +176,8 @@ def load_sim_config(
         raise SimConfigError(format_validation_errors(err, source)) from None
 
 
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            raise ValueError(f"TOML cannot hold {value}")
-        return repr(value)
-    if isinstance(value, str | Path):
-        return json.dumps(str(value))
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    raise TypeError(f"no TOML form for {type(value).__name__}")
-
-
-def _is_tables(value: Any) -> bool:
-    return isinstance(value, list) and bool(value) and all(isinstance(v, dict) for v in value)
-
-
-def _toml_lines(data: dict[str, Any], prefix: str) -> list[str]:
-    lines = [f"{k} = {_toml_value(v)}" for k, v in data.items()
-             if v is not None and not isinstance(v, dict) and not _is_tables(v)]
-    for k, v in data.items():
-        name = f"{prefix}.{k}" if prefix else k
-        if isinstance(v, dict):
-            lines += ["", f"[{name}]", *_toml_lines(v, name)]
-        elif _is_tables(v):
-            for item in v:
-                lines += ["", f"[[{name}]]", *_toml_lines(item, name)]
-    return lines
-
-
 def sim_config_toml(data: dict[str, Any], header: str = "") -> str:
     """A simulator configuration (the dict `load_sim_config` reads: robot, rig, controller, cmm) as TOML text, with
     an optional comment header; tables, arrays of tables and arrays of numbers."""
     comment = "".join(f"# {line}\n" if line else "#\n" for line in header.splitlines())
-    return comment + "\n".join(_toml_lines(data, "")).lstrip("\n") + "\n"
+    return comment + "\n".join(toml_lines(data, "")).lstrip("\n") + "\n"

@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from _docs import write_doc  # noqa: E402
 
+from hilcal.protocols.toml_text import toml_value  # noqa: E402
 from sim_devices.rig.config import concealed_effect_config  # noqa: E402
 
 FAST = {"controller": {"time_scale": 100000.0}, "cmm": {"time_scale": 0.0},
@@ -77,25 +78,15 @@ def cases(quick: bool) -> list[Case]:
     return out
 
 
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, str):
-        return json.dumps(value)
-    return repr(float(value)) if isinstance(value, float) else str(value)
-
-
 def sim_toml(case: Case) -> str:
     """The simulator TOML of a case: the rig seed, its effects, and the clock and probing speed."""
     lines = ["[rig]", f"seed = {case.seed}"]
     for name, values in case.effects.items():
         lines.append(f"[rig.effects.{name}]")
-        lines += [f"{k} = {_toml_value(v)}" for k, v in values.items()]
+        lines += [f"{k} = {toml_value(v)}" for k, v in values.items()]
     for section, values in case.sim.items():
         lines.append(f"[{section}]")
-        lines += [f"{k} = {_toml_value(v)}" for k, v in values.items()]
+        lines += [f"{k} = {toml_value(v)}" for k, v in values.items()]
     return "\n".join(lines) + "\n"
 
 

@@ -2,6 +2,7 @@
 
 Controller: ``controller.dbc`` (CAN frames), ``controller_states`` (state, command, reason and fault codes),
 ``registers`` (Modbus register map), ``checksums`` (CRC-8/-16/-32); see docs/protocols.md. CMM: ``cmm``.
+Configuration files the tools exchange (station, simulator): ``toml_text`` writes their TOML.
 """
 
 from __future__ import annotations
