@@ -25,9 +25,11 @@ lint: venv
 
 # Byte-compile first: with PYTHONDONTWRITEBYTECODE set (as on the machines this project is built on), every
 # process the tests start would otherwise compile the project's sources again (~0.15 s per `hilcal` start).
+# One BLAS thread per process: the workers and the runs they start already share the cores, and OpenBLAS's own
+# threads would only spin on them for matrices of a few hundred rows.
 test: lint
 	$(BIN)/python -m compileall -q -j0 hilcal drivers procedures sim_devices benchmarks tests >/dev/null
-	$(BIN)/pytest -n $(WORKERS) --dist loadfile --no-loadscope-reorder --durations=25
+	OPENBLAS_NUM_THREADS=1 $(BIN)/pytest -n $(WORKERS) --dist loadfile --no-loadscope-reorder --durations=25
 
 bench: venv
 	MPLBACKEND=Agg $(BIN)/python benchmarks/run_all.py

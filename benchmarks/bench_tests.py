@@ -71,7 +71,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="accepted for make bench; the suite always runs whole")
     parser.add_argument("--here", action="store_true", help="only pytest, in this checkout (no clone, no venv)")
     args = parser.parse_args(argv)
-    env = {**os.environ, "CI": "true"}
+    env = {**os.environ, "CI": "true", "OPENBLAS_NUM_THREADS": "1"}  # as `make test` sets it
     lines, output, code, _ = (_here if args.here else _fresh_clone)(env)
     summary = re.findall(r"(\d+ (?:passed|failed).*?) in ([\d.]+)s", output)
     slowest = re.findall(r"^([\d.]+)s (call|setup|teardown)\s+(\S+)$", output, flags=re.M)[:20]

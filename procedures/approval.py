@@ -20,8 +20,19 @@ from hilcal.calibration import CalibrationOutcome
 from hilcal.compensation import Compensation
 from hilcal.reports.physics import physics_lines
 from hilcal.robot import Robot
+from hilcal.workspace import random_poses
 from procedures.physics import PhysicsDecision
 from procedures.records import parameter_diff
+
+WORKSPACE_SAMPLES = 64
+
+
+def workspace_samples(robot: Robot, seed: int) -> np.ndarray:
+    """The 64 poses, uniform over the feasible workspace and seeded by the plan, where the approval evaluates the
+    compensation's fit and the model's spread. Uniform draws rather than the verification poses' Sobol set: the
+    average and worst pose over 64 draws need no low discrepancy, and scipy.stats would add half a second to the
+    start of every run."""
+    return random_poses(robot, WORKSPACE_SAMPLES, np.random.default_rng(seed))
 
 
 def upload_sha256(params: ParameterSet, block: CompensationBlock | None) -> str:

@@ -24,14 +24,13 @@ from hilcal.calibration import CalibrationOutcome, calibrate
 from hilcal.compensation import Compensation, ControllerGeometry, compensate, out_of_reach
 from hilcal.kinematics import forward_kinematics, inverse_kinematics
 from hilcal.leg_compensation import LegCompensation
-from hilcal.planning import design
 from hilcal.protocols.registers import Capability
 from hilcal.recording import Recording, recording_from_arrays
 from hilcal.robot import Robot
 from procedures import messages as m
 from procedures.acceptance import ACCEPTANCE_PHASE, AcceptanceTest
 from procedures.adaptive import PROGRESS_LABEL, STOP_LABEL, AdaptiveRun, check_route_on, progress
-from procedures.approval import approval_detail
+from procedures.approval import approval_detail, workspace_samples
 from procedures.physics import ControllerInfo, PhysicsDecision, decide
 from procedures.plan import CalibrationPlan, return_waypoints, waypoints
 
@@ -245,7 +244,7 @@ def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptio
         yield m.Checkpoint("refused", {"problems": result.problems, "findings": physics.findings,
                                        "identification": identification_summary(result)})
         return result
-    samples = design.verification_poses(robot, 64, plan.seed + 1)
+    samples = workspace_samples(robot, plan.seed + 1)
     result.compensation = compensate(robot, geom, physics.geometry_x, controller.offsets_only, samples)
     if physics.block is not None:
         params = result.compensation.parameters

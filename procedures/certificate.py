@@ -135,15 +135,14 @@ def _iso_section(test: AcceptanceTest | None, rows: list[dict], cmm_cov: np.ndar
 
 def _model_spread(robot: Robot, plan: Any, result: Any) -> dict[str, Any] | None:
     """The uploaded geometry's covariance carried to the approval's 64 workspace poses (None without one)."""
-    from hilcal.planning.design import verification_poses
-    from procedures.approval import model_covariance
+    from procedures.approval import model_covariance, workspace_samples
 
     if not result.outcomes:
         return None
     covariance, _ = model_covariance(result.outcomes[result.chosen], result.chosen, result.physics)
     if covariance is None or not np.all(np.isfinite(covariance)):
         return None
-    return model_uncertainty(robot, covariance, verification_poses(robot, 64, plan.seed + 1)).as_json()
+    return model_uncertainty(robot, covariance, workspace_samples(robot, plan.seed + 1)).as_json()
 
 
 def signoff_section(ctx: SignoffContext, robot: Robot, plan: Any, result: Any, pre_rows: list[dict],

@@ -6,6 +6,7 @@ cycle, a docstring and at most 550 lines per module, at most 20 modules per fold
 from __future__ import annotations
 
 import ast
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,7 +73,9 @@ def _targets(name: str, path: Path, node: ast.Import | ast.ImportFrom) -> list[s
     return out
 
 
+@functools.cache
 def _edges() -> list[Edge]:
+    """Every import edge between the project's modules (parsed once per process, when a test first asks)."""
     edges = set()
     for name, path in MODULES.items():
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
@@ -81,8 +84,6 @@ def _edges() -> list[Edge]:
                 edges.update(Edge(name, t, where) for t in _targets(name, path, node) if t != name)
     return sorted(edges, key=lambda e: (e.where, e.target))
 
-
-EDGES = _edges()
 
 
 def _layer(module: str) -> str:
@@ -103,7 +104,7 @@ MAY_IMPORT = {
 
 def test_the_graph_sees_the_imports_it_must_see() -> None:
     """The checker itself: known imports (top level, inside functions, relative to a sibling script) are found."""
-    found = {(e.source, e.target) for e in EDGES}
+    found = {(e.source, e.target) for e in _edges()}
     assert ("procedures.runner", "procedures.engine") in found
     assert ("procedures.cli.operator", "procedures.runner") in found  # imported inside `run`
     assert ("benchmarks.bench_cmm", "benchmarks._docs") in found
@@ -113,7 +114,7 @@ def test_the_graph_sees_the_imports_it_must_see() -> None:
 
 def test_each_layer_imports_only_the_layers_below_it() -> None:
     bad = [f"{e.where}: {e.source} ({_layer(e.source)}) imports {e.target} ({_layer(e.target)})"
-           for e in EDGES if _layer(e.target) not in MAY_IMPORT[_layer(e.source)]]
+           for e in _edges() if _layer(e.target) not in MAY_IMPORT[_layer(e.source)]]
     assert not bad, "imports against the layers of docs/architecture.md:\n" + "\n".join(bad)
 
 
@@ -140,7 +141,7 @@ def _room(module: str) -> str:
 
 
 def test_rooms_inside_hilcal_import_only_what_they_may() -> None:
-    bad = [f"{e.where}: {e.source} ({_room(e.source)}) imports {e.target} ({_room(e.target)})" for e in EDGES
+    bad = [f"{e.where}: {e.source} ({_room(e.source)}) imports {e.target} ({_room(e.target)})" for e in _edges()
            if _layer(e.source) == _layer(e.target) == "hilcal"
            and _room(e.target) not in ROOM_MAY_IMPORT[_room(e.source)]]
     assert not bad, "imports against the rooms of hilcal (docs/architecture.md):\n" + "\n".join(bad)
@@ -152,13 +153,13 @@ def test_the_room_check_sees_a_forbidden_import() -> None:
     assert "reports" not in ROOM_MAY_IMPORT[_room("hilcal.discovery.search")]
     assert "planning" not in ROOM_MAY_IMPORT[_room("hilcal.discovery.augmentation")]
     assert _room("hilcal.robot") == "calibration" and _room("hilcal.protocols.cmm") == "protocols"
-    found = {(e.source, e.target) for e in EDGES}
+    found = {(e.source, e.target) for e in _edges()}
     assert ("hilcal.reports.diagnosis", "hilcal.discovery.result") in found
     assert ("hilcal.discovery.search", "hilcal.discovery") not in found  # its own package is already loaded
 
 
 def test_simulators_share_only_declarative_definitions_with_the_core() -> None:
-    bad = [f"{e.where}: {e.source} imports {e.target}" for e in EDGES
+    bad = [f"{e.where}: {e.source} imports {e.target}" for e in _edges()
            if _layer(e.source) == "sim_devices" and _layer(e.target) == "hilcal"
            and not any(e.target == m or e.target.startswith(m + ".") for m in SIM_MAY_USE_FROM_HILCAL[1:])
            and e.target != "hilcal"]
@@ -168,15 +169,15 @@ def test_simulators_share_only_declarative_definitions_with_the_core() -> None:
 def test_no_import_cycle() -> None:
     names = sorted(MODULES)
     index = {n: k for k, n in enumerate(names)}
-    rows = [index[e.source] for e in EDGES]
-    cols = [index[e.target] for e in EDGES]
+    rows = [index[e.source] for e in _edges()]
+    cols = [index[e.target] for e in _edges()]
     graph = csr_array((np.ones(len(rows)), (rows, cols)), shape=(len(names), len(names)))
     n_components, labels = connected_components(graph, directed=True, connection="strong")
     sizes = np.bincount(labels, minlength=n_components)
     cycles = []
     for component in np.flatnonzero(sizes > 1):
         members = {names[k] for k in np.flatnonzero(labels == component)}
-        inside = [f"  {e.where}: {e.source} -> {e.target}" for e in EDGES
+        inside = [f"  {e.where}: {e.source} -> {e.target}" for e in _edges()
                   if e.source in members and e.target in members]
         cycles.append(f"cycle through {', '.join(sorted(members))}:\n" + "\n".join(inside))
     assert not cycles, "\n".join(cycles)

@@ -35,13 +35,23 @@ def smooth_temperature(temp_c: np.ndarray, window: int = TEMPERATURE_WINDOW) -> 
 
     Legs are tons of steel: their temperature changes over minutes, so row-to-row scatter in temp_c is
     sensor noise, which would otherwise enter a thermal regressor (errors in variables).
+    This is scipy.signal.savgol_filter(temp_c, window, 1, mode="interp") (tests/hilcal/test_context.py compares
+    them): a straight line fitted to each window is its mean at the centre, and the first and last windows' lines
+    are evaluated at the ends. It is written out because importing scipy.signal costs every run 0.4 s.
     """
-    n = len(temp_c)
+    x = np.asarray(temp_c, dtype=float)
+    n = len(x)
     if n < 5:
-        return np.asarray(temp_c, dtype=float)
-    from scipy.signal import savgol_filter  # scipy.signal costs 0.4 s of start-up; only temperatures need it
-
-    return savgol_filter(np.asarray(temp_c, dtype=float), min(window, n - (1 - n % 2)), 1, mode="interp")
+        return x
+    width = min(window, n - (1 - n % 2))
+    half = width // 2
+    out = np.empty(n)
+    out[half:n - half] = np.convolve(x, np.full(width, 1.0 / width), mode="valid")
+    at = np.arange(width, dtype=float)
+    for first, ends in ((0, at[:half]), (n - width, at[width - half:])):
+        slope, intercept = np.polyfit(at, x[first:first + width], 1)
+        out[first + ends.astype(int)] = intercept + slope * ends
+    return out
 
 
 def _joint_frames(directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -7,9 +7,7 @@ the records without recomputing anything here.
 
 from __future__ import annotations
 
-import base64
 import html
-import io
 import math
 from collections.abc import Sequence
 from datetime import datetime
@@ -18,6 +16,7 @@ from typing import Any
 from matplotlib.figure import Figure
 
 from hilcal.drift import describe
+from hilcal.reports.figures import fixed_margins, png_base64
 
 MAX_PANELS = 12
 
@@ -38,7 +37,7 @@ def trend_png(drift: dict[str, Any], names: Sequence[str] | None = None) -> str 
         return None
     cols = min(3, len(names))
     rows = math.ceil(len(names) / cols)
-    fig = Figure(figsize=(4.2 * cols, 2.6 * rows), layout="constrained")
+    fig = Figure(figsize=(4.2 * cols, 2.6 * rows))
     threshold = float(drift.get("threshold_mm") or 0.0)
     for k, name in enumerate(names):
         p = by_name[name]
@@ -60,9 +59,8 @@ def trend_png(drift: dict[str, Any], names: Sequence[str] | None = None) -> str 
         ax.tick_params(labelsize=7)
         for tick in ax.get_xticklabels():
             tick.set_rotation(30)
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=90)
-    return base64.b64encode(buffer.getvalue()).decode()
+    fixed_margins(fig, left_in=0.75, right_in=0.15, bottom_in=0.7, top_in=0.3, wspace_in=0.8, hspace_in=0.85)
+    return png_base64(fig, dpi=90)
 
 
 def _esc(value: object) -> str:

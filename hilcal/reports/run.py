@@ -9,9 +9,7 @@ check and what was uploaded. Plots are PNGs embedded as base64 data URIs, so the
 
 from __future__ import annotations
 
-import base64
 import html
-import io
 import json
 import math
 import re
@@ -28,6 +26,7 @@ from hilcal.metrics import AccuracySummary, Indicators
 from hilcal.reports.adaptive import adaptive_html
 from hilcal.reports.certificate import signoff_html
 from hilcal.reports.drift import drift_html
+from hilcal.reports.figures import fixed_margins, plain_log_scale, png_base64
 from hilcal.reports.physics import physics_html
 from hilcal.reports.timing import time_html
 
@@ -224,12 +223,6 @@ def report_json(r: RunReport) -> dict[str, Any]:
 # ------------------------------------------------------------------ plots
 
 
-def _png(fig: Figure) -> str:
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=100)
-    return base64.b64encode(buffer.getvalue()).decode("ascii")
-
-
 def _per_pose_plot(r: RunReport, which: int, label: str, unit: str) -> str:
     """Fig. 13 (which=0, position) or Fig. 14 (which=1, orientation): error per verification pose."""
     before = np.asarray(r.per_pose_before[which], dtype=float)
@@ -243,7 +236,7 @@ def _per_pose_plot(r: RunReport, which: int, label: str, unit: str) -> str:
         chosen = ESTIMATOR_LABELS.get(r.chosen, r.chosen)
         ax.plot(poses, after, "s-", color="tab:blue", label=f"after calibration ({chosen}, measured)")
         if after.min() > 0 and before.max() / after.max() > 20:
-            ax.set_yscale("log")
+            plain_log_scale(ax)
             title += " (log scale)"
     predicted = r.predicted_after.get(r.chosen)
     if predicted is not None:
@@ -255,8 +248,8 @@ def _per_pose_plot(r: RunReport, which: int, label: str, unit: str) -> str:
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    return _png(fig)
+    fixed_margins(fig, left_in=0.8, right_in=0.15, bottom_in=0.55, top_in=0.35)
+    return png_base64(fig)
 
 
 def _group_by_leg(names: tuple[str, ...]) -> dict[str, list[int]]:
@@ -312,8 +305,8 @@ def _parameter_plot(r: RunReport) -> str | None:
         ax.set_visible(False)
     axes[0].legend(fontsize=7)
     fig.suptitle("Identified parameter errors (±2σ for least squares; L-infinity gives no σ)")
-    fig.tight_layout()
-    return _png(fig)
+    fixed_margins(fig, left_in=0.8, right_in=0.15, bottom_in=0.6, top_in=0.65, wspace_in=0.85, hspace_in=0.95)
+    return png_base64(fig)
 
 
 def _comparison_plot(r: RunReport) -> str:
@@ -335,7 +328,7 @@ def _comparison_plot(r: RunReport) -> str:
             ax.bar_label(bars, fmt="%.3g", fontsize=6, rotation=90, padding=2)
         log_scale = table.min() > 0 and table.max() / table.min() > 50
         if log_scale:
-            ax.set_yscale("log")
+            plain_log_scale(ax)
         ax.margins(y=0.25)
         ax.set_xticks(xs, [INDICATOR_LABELS[i] for i in INDICATORS])
         ax.set_ylabel(title)
@@ -343,8 +336,8 @@ def _comparison_plot(r: RunReport) -> str:
         ax.grid(alpha=0.3, axis="y")
     axes[0].legend(fontsize=8)
     fig.suptitle("Least squares against L-infinity: predicted verification indicators")
-    fig.tight_layout()
-    return _png(fig)
+    fixed_margins(fig, left_in=0.85, right_in=0.15, bottom_in=0.4, top_in=0.75, wspace_in=1.0)
+    return png_base64(fig)
 
 
 # ------------------------------------------------------------------ HTML
