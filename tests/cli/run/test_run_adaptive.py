@@ -39,13 +39,16 @@ TARGET_MM = 0.008
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[int, str, Path]]:
+def runs(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path) -> dict[str, tuple[int, str, Path]]:
+    """The target run designs its reference plan, as a run without --plan does; the others are given the same plan
+    (tests/cli/conftest.py), which spares them the design's CPU time."""
     tmp = tmp_path_factory.mktemp("adaptive")
     (tmp / "sim.toml").write_text(INSTANT_SIM)
     (tmp / "physics.toml").write_text(INSTANT_SIM + PHYSICS)
     (tmp / "station.toml").write_text(instant_timing())
-    asks = {"target": ("sim.toml", "--target-mm", str(TARGET_MM)), "physics": ("physics.toml",),
-            "short": ("sim.toml", "--max-minutes", "0.45")}
+    asks = {"target": ("sim.toml", "--target-mm", str(TARGET_MM)),
+            "physics": ("physics.toml", "--plan", str(instant_plan)),
+            "short": ("sim.toml", "--max-minutes", "0.45", "--plan", str(instant_plan))}
     procs = {}
     for name, (config, *args) in asks.items():
         env = {**os.environ, "HILCAL_RECORDS": str(tmp / f"{name}.sqlite"), "COLUMNS": "200"}

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import sqlite3
 import subprocess
@@ -45,8 +46,10 @@ def _journal(path: Path) -> tuple[list[list[float]], dict | None, str | None]:
 
 
 def _start(tmp: Path, out: Path, run_id: str | None) -> subprocess.Popen[bytes]:
+    """A new adaptive run (the default plan as its reference, tests/cli/conftest.py) or a resume of run_id."""
     args = ["--resume", run_id] if run_id else ["--sim", "--adaptive", "--sim-config", str(tmp / "sim.toml"),
-                                                "--station", str(tmp / "station.toml")]
+                                                "--station", str(tmp / "station.toml"), "--plan",
+                                                str(tmp / "plan.json")]
     env = {**os.environ, "HILCAL_RECORDS": str(tmp / f"{out.name}.sqlite")}
     return subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", "--yes", "--operator", "T", "--out",
                              str(out), *args], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
@@ -64,7 +67,8 @@ def _kill_when(proc: subprocess.Popen[bytes], journal: Path, done, delay_s: floa
     time.sleep(0.3)  # the simulator notices its parent is gone
 
 
-def test_sigkill_mid_adaptive_then_resume_makes_the_same_choices(tmp_path: Path) -> None:
+def test_sigkill_mid_adaptive_then_resume_makes_the_same_choices(tmp_path: Path, instant_plan: Path) -> None:
+    shutil.copy(instant_plan, tmp_path / "plan.json")
     (tmp_path / "sim.toml").write_text(INSTANT_SIM)
     (tmp_path / "station.toml").write_text(instant_timing())
     rng = np.random.default_rng(28)
