@@ -15,12 +15,13 @@ import numpy as np
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.physics import CANDIDATES_BY_NAME
 from hilcal.discovery.result import Diagnosis, Shape
+from hilcal.reports.figures import fixed_margins
 
 DPI = 110
 
 
 def _save(fig: plt.Figure, path: Path) -> None:
-    fig.tight_layout()
+    """Write and close the figure; its margins are set in inches by the plot (hilcal.reports.figures)."""
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
 
@@ -60,7 +61,8 @@ def leg_plot(diag: Diagnosis, path: Path) -> None:
         ax.set_ylabel("leg residual, geometry only (µm)")
     axes[0, 0].legend(fontsize=8)
     effects = ", ".join(diag.effects) or "none"
-    fig.suptitle(f"Where the mismatch lives: per-leg residuals vs {label} (effects: {effects})")
+    fig.suptitle(f"Where the mismatch lives: per-leg residuals vs {label}\n(effects: {effects})")
+    fixed_margins(fig, left_in=0.85, right_in=0.15, bottom_in=0.55, top_in=0.85, wspace_in=0.25, hspace_in=0.8)
     _save(fig, path)
 
 
@@ -81,6 +83,7 @@ def time_plot(diag: Diagnosis, path: Path) -> None:
     ax.legend(ncol=6, fontsize=8)
     ax.grid(alpha=0.3)
     ax.set_title("Residuals over the run (dotted red: a new session)")
+    fixed_margins(fig, left_in=0.85, right_in=0.85 if ctx.temp_c is not None else 0.15, bottom_in=0.55, top_in=0.35)
     _save(fig, path)
 
 
@@ -104,6 +107,7 @@ def waterfall_plot(diag: Diagnosis, path: Path) -> None:
     ax.set_xticks(range(len(values)), labels, fontsize=7, rotation=15)
     ax.set_ylabel("verify RMS position error (µm)")
     ax.set_title("What each step buys on held-out verify poses\n(blue: library physics, red: unexplained)", fontsize=10)
+    fixed_margins(fig, left_in=0.85, right_in=0.15, bottom_in=0.95, top_in=0.55)
     _save(fig, path)
 
 
@@ -111,6 +115,7 @@ def shape_plot(diag: Diagnosis, shape: Shape, path: Path) -> None:
     """The fitted correction of one unexplained term with its 95 % band and the partial residuals."""
     g = shape.group
     fig, ax = plt.subplots(figsize=(7, 4))
+    fixed_margins(fig, left_in=0.85, right_in=0.15, bottom_in=0.55, top_in=0.55)  # before a colorbar takes its share
     if shape.grid.shape[1] == 1:
         x = shape.grid[:, 0]
         ax.fill_between(x, (shape.correction_mm - shape.band_mm) * 1000, (shape.correction_mm + shape.band_mm) * 1000,
@@ -183,4 +188,5 @@ def noise_plot(diag: Diagnosis, path: Path) -> None:
     ax.set_ylabel("residual / noise")
     ax.legend(fontsize=8)
     ax.set_title("Residual against the measurement noise (measure rows)")
+    fixed_margins(fig, left_in=0.75, right_in=0.15, bottom_in=0.4, top_in=0.35)
     _save(fig, path)

@@ -22,6 +22,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from hilcal.error_models import pose_difference
+from hilcal.reports.figures import fixed_margins, plain_log_scale
 
 DPI = 110
 TWINS = ("geometry", "physics")
@@ -119,12 +120,12 @@ def twin_plot(comparison: TwinComparison, path: Path) -> None:
     verify = np.flatnonzero(comparison.phase == "verify")
     if verify.size:
         ax.axvspan(verify[0] - 0.5, verify[-1] + 0.5, color="tab:orange", alpha=0.08, label="verify rows")
-    ax.set_yscale("log")
+    plain_log_scale(ax)
     ax.set_xlabel("row of the recording")
     ax.set_ylabel("|measured - twin| position (µm)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    fig.tight_layout()
+    fixed_margins(fig, left_in=0.85, right_in=0.15, bottom_in=0.55, top_in=0.2)
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
 
