@@ -1,11 +1,14 @@
 """Link drop-outs in a full `hilcal run --sim` run: short heartbeat gaps are ridden through and nothing is commanded
 once the host can know the link is down (a long gap, and the printed resume command, in test_link_guard_resume.py).
-The gaps are made by the simulated controller (it sends no frame while one lasts)."""
+The gaps are made by the simulated controller (it sends no frame while one lasts). This is also the soak benchmark's
+link-gap condition (benchmarks/bench_soak.py) at test size: nothing lost or duplicated, the uploaded set live and whole,
+nothing commanded in a gap."""
 
 from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from tests.cli.links.link_support import gap_log, journal_rows, late_commands, run_hilcal, sim_config
@@ -31,3 +34,7 @@ def test_short_gaps_are_ridden_through(tmp_path, instant_plan):
     rows = journal_rows(out, "SELECT phase, pose_index FROM measurements")
     assert len(rows) == len(set(rows)) == 35 + 24 + 24, "every pose measured exactly once"
     assert report["verification"]["after"]["max_position_mm"] <= 0.05
+    uploaded = report["compensation"]["uploaded_parameters"]
+    live = json.loads((out / "sim_state.json").read_text())["banks"]["live"]
+    assert np.allclose(live, np.concatenate([np.ravel(uploaded["a_mm"]), np.ravel(uploaded["b_mm"]),
+                                             uploaded["l0_mm"]]), atol=1e-3), "the uploaded set is live, whole"

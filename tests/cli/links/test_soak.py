@@ -1,6 +1,6 @@
 """The soak benchmark's short version: full runs under faults, judged as `benchmarks/bench_soak.py` judges them (no
 measurement lost or duplicated, no half-written parameter set, nothing commanded in a link gap): a Modbus connection
-dropped in the upload and a CMM that falls silent or garbles its replies here, link gaps in test_soak_gaps.py."""
+dropped in the upload and a CMM that falls silent or garbles its replies here, link gaps in test_link_guard.py."""
 
 from __future__ import annotations
 
