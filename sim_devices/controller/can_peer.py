@@ -183,8 +183,11 @@ class ControllerCanPeer:
         self.stats.tx_frames += 1
         return self.codec.encode(name, signals, counter)
 
-    def _ack(self, command: int, reason: RefusalReason, request_counter: int) -> Frame:
-        state = self.controller.snapshot().state
+    def _ack(self, command: int, reason: RefusalReason, request_counter: int,
+             state: ControllerState | None = None) -> Frame:
+        """CommandAck with the state the command left the controller in (docs/protocols.md: "State after"): given
+        when the command defines it, else the controller's state now."""
+        state = self.controller.snapshot().state if state is None else state
         signals = {"CommandCode": command, "Reason": int(reason), "State": int(state),
                    "RequestCounter": request_counter}
         return self._next_tx("CommandAck", signals)
@@ -245,7 +248,9 @@ class ControllerCanPeer:
         reason = self.controller.set_setpoint(lengths_mm, tag=counter)
         self._watch_until = time.monotonic() + WATCH_AFTER_SETPOINT_S
         self._state_sent = None
-        return [self._ack(Command.SETPOINT, reason, counter)]
+        # an accepted setpoint starts a move: MOVING, even if a fast servo has arrived by the time the ack is made
+        after = ControllerState.MOVING if reason is RefusalReason.ACCEPTED else None
+        return [self._ack(Command.SETPOINT, reason, counter, after)]
 
     def cycle_frames(self, only_if_changed: bool = False) -> list[Frame]:
         """One heartbeat: [FaultEvent if a fault happened,] Status, FeedbackL12, FeedbackL34, FeedbackL56.
