@@ -357,24 +357,34 @@ def _min_pairwise_distance(x: np.ndarray) -> float:
     return float(d[np.triu_indices(len(x), 1)].min())
 
 
-def paper_pose_sets(robot: Robot, seed: int) -> dict[str, Design]:
-    """The four pose sets of the paper's section 5.2, D-efficiencies relative to set 1 (32 random poses).
+PAPER_POSE_SETS = ("set1_random32", "set2_doptimal32", "set3_factorial_exchange32", "set4_doptimal64")
+
+
+def paper_pose_sets(robot: Robot, seed: int, names: Iterable[str] | None = None) -> dict[str, Design]:
+    """The four pose sets of the paper's section 5.2 (or only those named), D-efficiencies relative to set 1 (32
+    random poses).
 
     Set 2 is the coordinate exchange started from set 1, so its gain over set 1 is the exchange's alone;
-    set 3 is deterministic (factorial grid) and set 4 starts from an independent stream of the same seed.
+    set 3 is deterministic (factorial grid) and set 4 starts from an independent stream of the same seed. A set is
+    the same whether or not the others are made (set 1, the reference, is always drawn).
     """
+    wanted = list(PAPER_POSE_SETS if names is None else names)
+    unknown = sorted(set(wanted) - set(PAPER_POSE_SETS))
+    if unknown:
+        raise ValueError(f"unknown pose set(s) {unknown}: choose from {', '.join(PAPER_POSE_SETS)}")
     s1, s4 = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
     set1 = random_poses(robot, 32, s1)
-    designs = {
-        "set1_random32": Design("set1_random32", set1, design_metrics(robot, set1)),
-        "set2_doptimal32": coordinate_exchange(robot, 32, s1, start=set1),
-        "set3_factorial_exchange32": factorial_exchange(robot, 32, s1),
-        "set4_doptimal64": coordinate_exchange(robot, 64, s4),
+    makers = {  # in this order: set 2 draws from s1 after set 1
+        "set2_doptimal32": lambda: coordinate_exchange(robot, 32, s1, start=set1),
+        "set3_factorial_exchange32": lambda: factorial_exchange(robot, 32, s1),
+        "set4_doptimal64": lambda: coordinate_exchange(robot, 64, s4),
     }
+    designs = {"set1_random32": Design("set1_random32", set1, design_metrics(robot, set1))}
+    designs.update({key: make() for key, make in makers.items() if key in wanted})
     ref = designs["set1_random32"].metrics.log_det
     return {
         key: replace(design, name=key, metrics=design_metrics(robot, design.poses, ref))
-        for key, design in designs.items()
+        for key, design in designs.items() if key in wanted
     }
 
 
@@ -409,6 +419,7 @@ def design_report(designs: Iterable[Design] | Mapping[str, Design]) -> str:
 __all__ = [
     "MAX_CONDITION",
     "N_PARAMETERS",
+    "PAPER_POSE_SETS",
     "Design",
     "DesignMetrics",
     "candidate_log_dets",

@@ -230,10 +230,9 @@ def _pose_set(rb: Robot, recording: Path | None, design_name: str, seed: int) ->
             return read_recording(recording, rb, min_measure_rows=1).select("measure").meas
         except RecordingError as e:
             fail(str(e))
-    sets = design.paper_pose_sets(rb, seed)
-    if design_name not in sets:
-        fail(f"unknown pose set {design_name!r}: choose one of {', '.join(sets)}")
-    return sets[design_name].poses
+    if design_name not in design.PAPER_POSE_SETS:
+        fail(f"unknown pose set {design_name!r}: choose one of {', '.join(design.PAPER_POSE_SETS)}")
+    return design.paper_pose_sets(rb, seed, [design_name])[design_name].poses
 
 
 def identifiability(
