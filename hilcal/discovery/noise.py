@@ -27,7 +27,13 @@ from hilcal.recording import Recording
 from hilcal.robot import Robot
 
 REPEAT_LEG_TOLERANCE_MM = 0.005
-"""Rows whose six reported leg lengths agree to 5 µm (and no commanded pose tells otherwise) are repeats."""
+"""Rows without a commanded pose whose six reported leg lengths agree to 5 µm are repeats."""
+REPEAT_SERVO_TOLERANCE_MM = 0.05
+"""Rows with the same commanded pose are repeats where the servo landed within 50 µm on every leg: a real servo's
+landing scatter (µm to tens of µm) is the machine's repeatability, which the repeats are there to measure."""
+REPEAT_WINDOW_S = 900.0
+"""Repeats are measured within 15 minutes of the first: visits of one pose hours apart differ by drift (a leg warming
+up, a re-homing), which is not noise and would make a yardstick that hides the physics."""
 PERTURBATION_MM = 1e-3
 
 
@@ -129,25 +135,45 @@ def sigma_from_sphere_fit(rms_mm: np.ndarray, robot: Robot) -> tuple[float, floa
 
 
 def find_repeats(rec: Recording, session: np.ndarray | None = None) -> list[np.ndarray]:
-    """Groups (>= 2 rows, one session) of rows measured at the same pose: same commanded pose, else same legs.
+    """Groups (>= 2 rows, one session, within REPEAT_WINDOW_S of the first) of rows measured at the same pose: the
+    same commanded pose with the legs within REPEAT_SERVO_TOLERANCE_MM, else legs within REPEAT_LEG_TOLERANCE_MM.
 
     `session`: the rows' sessions when they are a subset of a longer recording (else from their clock)."""
     session = detect_sessions(rec.time_s) if session is None else np.asarray(session)
     has_cmd = np.all(np.isfinite(rec.cmd), axis=1)
+    time_s = np.asarray(rec.time_s, dtype=float)
     unused = np.ones(rec.n, dtype=bool)
     groups = []
     for k in range(rec.n):
         if not unused[k]:
             continue
         same = (session == session[k]) & unused
-        same &= np.max(np.abs(rec.legs_mm - rec.legs_mm[k]), axis=1) <= REPEAT_LEG_TOLERANCE_MM
+        if np.isfinite(time_s[k]):
+            same &= ~np.isfinite(time_s) | (np.abs(time_s - time_s[k]) <= REPEAT_WINDOW_S)
+        legs = np.max(np.abs(rec.legs_mm - rec.legs_mm[k]), axis=1)
         if has_cmd[k]:
-            same &= ~has_cmd | (np.max(np.abs(rec.cmd - rec.cmd[k]), axis=1) <= 1e-6)
+            commanded = np.max(np.abs(rec.cmd - rec.cmd[k]), axis=1) <= 1e-6
+            same &= np.where(has_cmd, commanded & (legs <= REPEAT_SERVO_TOLERANCE_MM),
+                             legs <= REPEAT_LEG_TOLERANCE_MM)
+        else:
+            same &= legs <= REPEAT_LEG_TOLERANCE_MM
         rows = np.flatnonzero(same)
         if rows.size >= 2:
             groups.append(rows)
             unused[rows] = False
     return groups
+
+
+def revisited_poses(rec: Recording, groups: list[np.ndarray]) -> int:
+    """Commanded poses measured more than once whose visits are not repeats (hours or sessions apart, or landed
+    too far apart): said when the noise level stays unknown, so the reader knows why they were not used."""
+    has_cmd = np.all(np.isfinite(rec.cmd), axis=1)
+    in_group = np.zeros(rec.n, dtype=bool)
+    for g in groups:
+        in_group[g] = True
+    _, inverse, counts = np.unique(np.round(rec.cmd[has_cmd], 6), axis=0, return_inverse=True, return_counts=True)
+    visited = counts[inverse.ravel()] >= 2
+    return len(np.unique(inverse.ravel()[visited & ~in_group[has_cmd]]))
 
 
 def noise_from_repeats(residuals: np.ndarray, groups: list[np.ndarray]) -> tuple[np.ndarray, float] | None:
@@ -206,8 +232,14 @@ def noise_yardstick(rec: Recording, robot: Robot, residuals: np.ndarray, length_
                                        np.broadcast_to(cov, (rec.n, 6, 6)).copy(), None, dof))
     notes = []
     if not estimates:
+        revisited = revisited_poses(rec, groups)
+        why = (f"; {revisited} commanded pose(s) were visited again, but not as repeats (more than "
+               f"{REPEAT_WINDOW_S / 60:.0f} min or a session apart, or legs landing more than "
+               f"{REPEAT_SERVO_TOLERANCE_MM * 1000:.0f} µm apart): drift between visits is not measurement noise"
+               if revisited else "")
         return NoiseLevel(None, (), ("noise level unknown: relative tests only (give --cmm-sigma-mm, the robot "
-                                     "file's cmm.sphere_sigma_mm, a sphere_fit_rms_mm column or repeated poses)",))
+                                     "file's cmm.sphere_sigma_mm, a sphere_fit_rms_mm column or repeated poses)"
+                                     + why,))
     chosen = estimates[0]
     for other in estimates[1:]:
         ratio = other.position_mm / chosen.position_mm
