@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from hilcal.importing.mapping import ImportMap, OrientationMap, PositionMap
 from hilcal.recording import Recording, session_numbers
 
-MM_PER = {"mm": 1.0, "m": 1000.0}
+MM_PER = {"mm": 1.0, "m": 1000.0, "in": 25.4}
 
 
 @dataclass(frozen=True)
@@ -129,7 +129,8 @@ def _columns(rec: Recording, mapping: ImportMap, options: ExportOptions) -> dict
     if mapping.fit_rms is not None:
         out[mapping.fit_rms.column] = (rec.extra["sphere_fit_rms_mm"] / MM_PER[mapping.fit_rms.unit], "fit_rms")
     if mapping.temperature is not None:
-        temp = rec.extra["temp_c"] + (273.15 if mapping.temperature.unit == "K" else 0.0)
+        temp = {"C": rec.extra["temp_c"], "K": rec.extra["temp_c"] + 273.15,
+                "F": rec.extra["temp_c"] * 1.8 + 32.0}[mapping.temperature.unit]
         out[mapping.temperature.column] = (temp, "temperature")
     return out
 

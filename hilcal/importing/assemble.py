@@ -36,7 +36,6 @@ from hilcal.recording import TEMP_RANGE_C, Recording, RecordingError, recording_
 from hilcal.robot import Robot
 from hilcal.wiring import LegWiring, check_wiring
 
-KELVIN_OFFSET = 273.15
 _RECORDING_MESSAGE = re.compile(r"imported recording(?: row (\d+))?(?: \(seq \d+\))?(?:, column [^:]+)?: (.*)$", re.S)
 
 
@@ -199,7 +198,7 @@ def _convert(table: Table, mapping: ImportMap, robot: Robot | None, hold_out: Ho
     temp = None
     if mapping.temperature is not None:
         column = mapping.temperature.column
-        temp = table.numbers([column])[:, 0] - (KELVIN_OFFSET if mapping.temperature.unit == "K" else 0.0)
+        temp = mapping.temperature.celsius(table.numbers([column])[:, 0])
         bad = (temp < TEMP_RANGE_C[0]) | (temp > TEMP_RANGE_C[1])
         if np.any(bad):
             i = int(np.argmax(bad))

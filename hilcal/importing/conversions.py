@@ -25,7 +25,7 @@ MAX_LEG_RATIO = 3.0
 """Without a robot file: a leg's longest reading is at most this times its shortest. A leg's retracted length holds
 its stroke (cylinder body, screw, guide), so a ratio above 2 is rare and above 3 means a unit or zero is wrong."""
 AXES = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
-MM_PER_UNIT = {"mm": 1.0, "m": 1000.0}
+MM_PER_UNIT = {"mm": 1.0, "m": 1000.0, "in": 25.4}
 
 
 def legs_mm(readings: np.ndarray, legs: LegsMap) -> np.ndarray:
@@ -60,7 +60,7 @@ def check_legs(lengths_mm: np.ndarray, readings: np.ndarray, legs: LegsMap, robo
 
 
 def _how(readings: np.ndarray, lengths_mm: np.ndarray, legs: LegsMap, i: int, k: int) -> str:
-    scale = "" if legs.unit in ("mm", "m") else f" x {legs.scale_mm()[k]:g} mm/{legs.unit}"
+    scale = "" if legs.unit in MM_PER_UNIT else f" x {legs.scale_mm()[k]:g} mm/{legs.unit}"
     return f"reading {readings[i, k]:g} {legs.unit}{scale} + zero {legs.zero()[k]:g} mm = {lengths_mm[i, k]:.6g} mm"
 
 

@@ -21,7 +21,9 @@ Names6 = Annotated[list[str], Field(min_length=6, max_length=6)]
 PerLeg = float | Annotated[list[float], Field(min_length=6, max_length=6)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
-LegUnit = Literal["mm", "m", "count", "rev"]
+LengthUnit = Literal["mm", "m", "in"]
+"""Lengths as loggers write them: mm, metres or inches (25.4 mm)."""
+LegUnit = Literal["mm", "m", "in", "count", "rev"]
 OrientationKind = Literal["quaternion_xyzw", "quaternion_wxyz", "rpy_deg", "rpy_rad", "matrix", "euler_deg",
                           "euler_rad", "rotvec_deg", "rotvec_rad"]
 ORIENTATION_COLUMNS: dict[str, int] = {
@@ -50,7 +52,8 @@ def _distinct(names: list[str]) -> list[str]:
 
 
 class LegsMap(_Strict):
-    """Leg readings: length_mm = zero_mm + mm_per_unit * reading (mm: 1, m: 1000 and zero_mm 0 unless given)."""
+    """Leg readings: length_mm = zero_mm + mm_per_unit * reading (mm: 1, m: 1000, in: 25.4; zero_mm 0 unless
+    given)."""
 
     columns: Names6
     unit: LegUnit
@@ -72,7 +75,7 @@ class LegsMap(_Strict):
 
     def scale_mm(self) -> np.ndarray:
         """(6,) mm per reading unit."""
-        fixed = {"mm": 1.0, "m": 1000.0}
+        fixed = {"mm": 1.0, "m": 1000.0, "in": 25.4}
         value = fixed[self.unit] if self.unit in fixed else self.mm_per_unit
         return np.broadcast_to(np.asarray(value, dtype=float), (6,)).copy()
 
@@ -85,7 +88,7 @@ class PositionMap(_Strict):
     """The platform frame's origin in the base frame: x, y, z columns."""
 
     columns: Names3
-    unit: Literal["mm", "m"] = "mm"
+    unit: LengthUnit = "mm"
 
     _names = field_validator("columns")(_distinct)
 
@@ -188,7 +191,7 @@ class TargetsMap(_Strict):
     frame, as the CMM path does with its base spheres.
     """
 
-    unit: Literal["mm", "m"] = "mm"
+    unit: LengthUnit = "mm"
     platform: Annotated[list[TargetMap], Field(min_length=3)]
     base: list[TargetMap] = Field(default_factory=list)
 
@@ -207,17 +210,26 @@ class TargetsMap(_Strict):
 
 
 class TemperatureMap(_Strict):
-    """A leg (or ambient) temperature column, written as ``temp_c``."""
+    """A leg (or ambient, or oil) temperature column in °C, K or °F, written as ``temp_c``."""
 
     column: str
-    unit: Literal["C", "K"] = "C"
+    unit: Literal["C", "K", "F"] = "C"
+
+    def celsius(self, values: np.ndarray) -> np.ndarray:
+        """The readings in °C."""
+        values = np.asarray(values, dtype=float)
+        if self.unit == "K":
+            return values - 273.15
+        if self.unit == "F":
+            return (values - 32.0) * (5.0 / 9.0)
+        return values
 
 
 class FitRmsMap(_Strict):
     """The pose measurement's registration RMS as the CMM or tracker software writes it: ``sphere_fit_rms_mm``."""
 
     column: str
-    unit: Literal["mm", "m"] = "mm"
+    unit: LengthUnit = "mm"
 
 
 class FrameMap(_Strict):

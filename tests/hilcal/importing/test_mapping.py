@@ -52,7 +52,7 @@ def test_leg_scale_is_fixed_for_mm_and_m_and_zero_defaults_to_0():
 @pytest.mark.parametrize(("change", "key", "words"), [
     ({"legs": {**LEGS, "unit": "rev"}}, "legs", "needs mm_per_unit and zero_mm"),
     ({"legs": {**LEGS, "unit": "mm", "mm_per_unit": 2.0}}, "legs", "fixed for unit"),
-    ({"legs": {**LEGS, "unit": "inch"}}, "legs.unit", "'mm', 'm', 'count' or 'rev'"),
+    ({"legs": {**LEGS, "unit": "inch"}}, "legs.unit", "'mm', 'm', 'in', 'count' or 'rev'"),
     ({"legs": {**LEGS, "columns": ["a"] * 6}}, "legs.columns", "listed twice"),
     ({"orientation": {"columns": ["a", "b", "c"], "kind": "quaternion_wxyz"}}, "orientation", "needs 4 columns"),
     ({"position": None}, "(top level)", "go together"),

@@ -68,6 +68,9 @@ VARIANTS = {
     "time in ms since the logger started": {"time": {"column": "t", "unit": "ms"}},
     "kelvin, semicolons and decimal commas": {"temperature": {"column": "T", "unit": "K"},
                                               "csv": {"delimiter": ";", "decimal": ","}},
+    "inches and fahrenheit": {"legs": {"columns": LEG_COLUMNS, "unit": "in"},
+                              "position": {"columns": ["px", "py", "pz"], "unit": "in"},
+                              "temperature": {"column": "T", "unit": "F"}},
     "platform targets only": {"position": None, "orientation": None, "fit_rms": None, "targets": {
         "unit": "m", "platform": [{"name": f"T{k}", "columns": [f"T{k}x", f"T{k}y", f"T{k}z"], "position_mm": p}
                                   for k, p in enumerate([[1000.0, 0.0, 100.0], [-500.0, 866.03, 100.0],
