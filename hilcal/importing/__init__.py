@@ -2,9 +2,10 @@
 
 Holds the mapping file (``mapping``), CSV tables with line numbers (``table``), unit and orientation conversions
 (``conversions``), the pose from raw target points by the CMM path's rigid registration (``targets``), clocks,
-sessions and phases (``sessions``), the per-session summary (``summary``), the import itself (``assemble``) and a
-robot file from documented geometry (``geometry``). Errors name the file, line and column (``errors``). May import
-the calibration math at the top of ``hilcal`` and itself; never ``planning``, ``discovery`` or ``reports``.
+sessions and phases (``sessions``), the per-session summary (``summary``), the import itself (``assemble``), rows left
+out on request (``incomplete``) and a robot file from documented geometry (``geometry``). Errors name the file, line
+and column (``errors``). May import the calibration math at the top of ``hilcal`` and itself; never ``planning``,
+``discovery`` or ``reports``.
 """
 
 from hilcal.importing.assemble import ImportResult, import_recording

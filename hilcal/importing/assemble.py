@@ -19,6 +19,7 @@ import numpy as np
 from hilcal.importing import conversions as conv
 from hilcal.importing.errors import ImportFileError, ValueProblem
 from hilcal.importing.frames import FrameAlignmentError, align_frames
+from hilcal.importing.incomplete import leave_out_incomplete
 from hilcal.importing.mapping import ImportMap, OrientationMap, PoseColumns
 from hilcal.importing.sessions import (
     HoldOut,
@@ -41,12 +42,14 @@ _RECORDING_MESSAGE = re.compile(r"imported recording(?: row (\d+))?(?: \(seq \d+
 
 @dataclass(frozen=True)
 class ImportResult:
-    """The imported recording, its sessions, the files in order, and notes the user should read."""
+    """The imported recording, its sessions, the files in order, notes the user should read, and the rows left out
+    (``skip_incomplete``: one sentence each, file and line first)."""
 
     recording: Recording
     sessions: tuple[SessionSummary, ...]
     files: tuple[str, ...]
     notes: tuple[str, ...]
+    left_out: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -337,15 +340,26 @@ def import_recording(
     robot: Robot | None = None,
     hold_out: HoldOut | None = None,
     min_measure_rows: int = 8,
+    skip_incomplete: bool = False,
 ) -> ImportResult:
-    """Read, convert and check every file, then build one recording (rows in file order, seq from 1)."""
+    """Read, convert and check every file, then build one recording (rows in file order, seq from 1).
+
+    skip_incomplete: rows without a measurement or repeating an earlier row are left out and listed
+    (``hilcal.importing.incomplete``) instead of being errors."""
     if not paths:
         raise ImportFileError("command line", "no input files")
     tables = [read_table(p, mapping.csv) for p in paths]
     _check_columns(tables, mapping)
     _hold_out_file(tables, hold_out)
+    left_out: list[str] = []
+    if skip_incomplete:
+        twice = sorted({t.source for t in tables if sum(u.source == t.source for u in tables) > 1})
+        if twice:
+            raise ImportFileError(twice[0], "the same file is given twice")
+        tables, left_out = leave_out_incomplete(tables, mapping)
+    converted = [_convert(t, mapping, robot, hold_out) for t in tables]  # a file's own errors first, in file order
     _check_duplicates(tables, mapping.columns())
-    rows, frame_notes = _align([_convert(t, mapping, robot, hold_out) for t in tables], mapping, robot)
+    rows, frame_notes = _align(converted, mapping, robot)
     time_s = _clocks(rows, mapping)
     extra: dict[str, np.ndarray] = {}
     if mapping.targets is not None or mapping.fit_rms is not None:
@@ -373,4 +387,4 @@ def import_recording(
         raise _recording_error(err, rows) from None
     return ImportResult(recording=rec, sessions=summarise(rec, file_of_row, robot),
                         files=tuple(t.source for t in tables),
-                        notes=(*frame_notes, *_notes(rows, mapping, robot, hold_out)))
+                        notes=(*frame_notes, *_notes(rows, mapping, robot, hold_out)), left_out=tuple(left_out))

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -24,6 +25,10 @@ if TYPE_CHECKING:
     from hilcal.importing import ImportResult
     from hilcal.robot import Robot
 
+LEFT_OUT_SHOWN = 20
+"""Rows left out by --skip-incomplete printed in the summary (--json lists every one)."""
+_INCOMPLETE = re.compile(r"empty cell|NaN is not a measurement|duplicate row")
+"""Import errors that --skip-incomplete turns into listed rows."""
 MIN_REACHABLE_FRACTION = 0.05
 """Below this share of reachable poses in the travel box, pose designs and random poses barely find any."""
 
@@ -81,6 +86,14 @@ def _print_summary(result: ImportResult, robot: Robot | None) -> None:
     out.print(ranges)
     for note in result.notes:
         out.print(f"[yellow]note:[/] {escape(note)}", highlight=False, markup=True)
+    if result.left_out:
+        out.print(f"[yellow]left out {len(result.left_out)} row(s)[/] (--skip-incomplete):", highlight=False,
+                  markup=True)
+        for sentence in result.left_out[:LEFT_OUT_SHOWN]:
+            out.print(f"  {escape(sentence)}", highlight=False)
+        if len(result.left_out) > LEFT_OUT_SHOWN:
+            out.print(f"  ... and {len(result.left_out) - LEFT_OUT_SHOWN} more (--json lists every one)",
+                      highlight=False)
 
 
 def import_command(
@@ -93,6 +106,10 @@ def import_command(
     hold_out: Annotated[str | None, typer.Option(
         "--hold-out", help="every:N (every N-th row of every file) or file:NAME (that file's rows) are verify rows",
     )] = None,
+    skip_incomplete: Annotated[bool, typer.Option(
+        "--skip-incomplete", help="leave out rows with an empty or NaN measurement cell and rows that repeat an "
+        "earlier row, and list each (default: such a row is an error)",
+    )] = False,
     as_json: Annotated[bool, typer.Option("--json", help="print the summary as one JSON object")] = False,
 ) -> None:
     """Write a recording from the CSV files that machines and trackers export, with a summary per session."""
@@ -107,15 +124,18 @@ def import_command(
     rb = None if robot is None else robot_or_fail(robot)
     _writable(out_path, files)
     try:
-        result = import_recording(files, mapping, robot=rb, hold_out=chosen)
+        result = import_recording(files, mapping, robot=rb, hold_out=chosen, skip_incomplete=skip_incomplete)
     except ImportFileError as e:
-        fail(str(e))
+        hint = ("" if skip_incomplete or not _INCOMPLETE.search(e.detail) else
+                " (--skip-incomplete leaves such rows out and lists them)")
+        fail(str(e) + hint)
     _write_atomically(out_path, lambda tmp: write_recording(tmp, result.recording))
     rec = result.recording
     if as_json:
         print(json.dumps({"out": str(out_path), "rows": rec.n, "measure": int((rec.phase == "measure").sum()),
                           "verify": int((rec.phase == "verify").sum()), "files": list(result.files),
-                          "sessions": [s.to_json() for s in result.sessions], "notes": list(result.notes)}, indent=2))
+                          "sessions": [s.to_json() for s in result.sessions], "notes": list(result.notes),
+                          "left_out": list(result.left_out)}, indent=2))
         return
     _print_summary(result, rb)
     out.print(f"wrote {out_path}: {rec.n} rows ({int((rec.phase == 'measure').sum())} measure, "

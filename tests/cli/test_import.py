@@ -126,6 +126,24 @@ def test_bad_input_exits_2_names_file_line_column_and_writes_nothing(logger_copy
     assert not out.exists() and not list(tmp_path.glob(".rec.csv*"))
 
 
+def test_a_row_without_a_measurement_is_an_error_that_points_at_skip_incomplete(logger_copy, tmp_path):
+    day1 = logger_copy / "day1.csv"
+    lines = day1.read_text().splitlines()
+    header = lines[0].split(",")
+    at = 3  # the third data row (file line 4)
+    cells = lines[at].split(",")
+    cells[len(header) - 1] = ""
+    lines[at] = ",".join(cells)
+    day1.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "rec.csv"
+    failed = runner.invoke(app, _logger_args(logger_copy, out))
+    assert failed.exit_code == 2 and "--skip-incomplete" in _flat(failed.output) and not out.exists()
+    done = runner.invoke(app, [*_logger_args(logger_copy, out), "--skip-incomplete", "--json"])
+    assert done.exit_code == 0, done.output
+    summary = json.loads(done.stdout)
+    assert summary["left_out"] == [f"day1.csv line {at + 1}: no value in {header[-1]}"] and summary["rows"] == 65
+
+
 def test_legs_in_m_read_as_mm_are_legs_of_4_mm(tmp_path):
     folder = tmp_path / "tracker"
     shutil.copytree(EXAMPLES / "tracker", folder)

@@ -137,6 +137,29 @@ def test_duplicate_rows_in_a_file_and_across_files(two_files, robot):
     assert "given twice" in str(_error([a, a]))
 
 
+def test_skip_incomplete_leaves_out_and_lists_rows_without_a_measurement_and_repeated_rows(two_files, robot):
+    """A tracker that lost its target (empty pose cells), a NaN leg reading and a sample written twice: errors in
+    file order by default; with skip_incomplete the rows are left out, each named, and the rest imported as is."""
+    a, b, legs = two_files
+    for column in POSE:
+        _edit(a, 5, column, "")  # data row 4 of day1
+    _edit(b, 3, "l2", "NaN")  # data row 2 of day2
+    lines = b.read_text().splitlines()
+    b.write_text("\n".join([*lines, lines[-1]]) + "\n")  # day2's last row again: line 8
+    err = _error([a, b])
+    assert (err.source, err.line, err.column) == (str(a), 5, "x") and "empty cell" in str(err)
+    result = import_recording([a, b], map_from_dict(MAP), robot=robot, hold_out=HoldOut(file="day2.csv"),
+                              skip_incomplete=True)
+    assert result.left_out == ("day1.csv line 5: no value in x, y, z, roll, pitch, yaw",
+                               "day2.csv line 3: no value in l2",
+                               "day2.csv line 8: the same values as day2.csv line 7 in every mapped column")
+    kept = np.delete(np.arange(18), [3, 13])
+    assert np.array_equal(result.recording.legs_mm, legs[kept])
+    assert list(result.recording.extra["source_line"]) == [2, 3, 4, *range(6, 14), 2, *range(4, 8)]
+    with pytest.raises(ImportFileError, match="given twice"):
+        import_recording([a, a], map_from_dict(MAP), robot=robot, skip_incomplete=True)
+
+
 def test_a_unit_that_does_not_fit_is_named(tmp_path, robot):
     path, _ = _write(tmp_path / "log.csv", robot, 10, 5)
     err = _error([path], {**MAP, "orientation": {"columns": POSE[3:], "kind": "rpy_rad"}}, robot=robot)
