@@ -18,7 +18,7 @@ import numpy as np
 
 from hilcal.importing import conversions as conv
 from hilcal.importing.errors import ImportFileError, ValueProblem
-from hilcal.importing.frames import FrameAlignmentError, align_frames
+from hilcal.importing.frames import FrameAlignment, FrameAlignmentError, align_frames
 from hilcal.importing.incomplete import leave_out_incomplete
 from hilcal.importing.mapping import ImportMap, OrientationMap, PoseColumns
 from hilcal.importing.sessions import (
@@ -132,6 +132,32 @@ def _pose_labels(mapping: ImportMap) -> list[str]:
     return [*mapping.position.columns, *_orientation_labels(mapping.orientation)]
 
 
+SHARED_FRAME_MARGIN_MM = 2.0
+"""A shared frame may leave this much more (RMS) than the files' own frames before it is taken for a moved
+instrument: with few rows a file's own frame also absorbs some geometric error."""
+
+
+def _fit_frame(part: list[_FileRows], robot: Robot) -> FrameAlignment:
+    try:
+        return align_frames(np.concatenate([r.meas for r in part]), np.concatenate([r.legs_mm for r in part]), robot)
+    except FrameAlignmentError as e:
+        raise ImportFileError(", ".join(r.table.source for r in part), str(e)) from None
+
+
+def _check_shared(shared: FrameAlignment, rows: list[_FileRows], robot: Robot) -> None:
+    """A shared frame that the files' own frames beat by far: the instrument was set up again between files."""
+    try:
+        own = max(align_frames(r.meas, r.legs_mm, robot).rms_position_mm for r in rows)
+    except FrameAlignmentError:
+        return  # a file too small to align alone: nothing to compare with
+    if shared.rms_position_mm > 3.0 * own + SHARED_FRAME_MARGIN_MM:
+        raise ImportFileError(
+            ", ".join(r.table.source for r in rows),
+            f'[frame] align = "shared" leaves {shared.rms_position_mm:.3f} mm RMS between the logged poses and the '
+            f"leg lengths, but each file aligned alone leaves at most {own:.3f} mm: the instrument was set up again "
+            'between the files; set [frame] align = "per_file"')
+
+
 def _align(rows: list[_FileRows], mapping: ImportMap, robot: Robot | None) -> tuple[list[_FileRows], list[str]]:
     """Measured poses from the instrument's frame into the base frame ([frame] align), checked there; notes."""
     mode = mapping.frame.align
@@ -144,11 +170,9 @@ def _align(rows: list[_FileRows], mapping: ImportMap, robot: Robot | None) -> tu
     out: list[_FileRows] = []
     notes = []
     for part in parts:
-        try:
-            fit = align_frames(np.concatenate([r.meas for r in part]), np.concatenate([r.legs_mm for r in part]),
-                               robot)
-        except FrameAlignmentError as e:
-            raise ImportFileError(", ".join(r.table.source for r in part), str(e)) from None
+        fit = _fit_frame(part, robot)
+        if mode == "shared" and len(rows) > 1:
+            _check_shared(fit, rows, robot)
         where = "all files" if mode == "shared" else part[0].table.source
         notes.append(f"[frame] aligned ({where}): {fit.describe()}")
         for r in part:
@@ -159,6 +183,12 @@ def _align(rows: list[_FileRows], mapping: ImportMap, robot: Robot | None) -> tu
                 raise _at(r.table, _pose_labels(mapping), ValueProblem(p.row, p.column, p.detail + " (after the "
                           "[frame] alignment)")) from None
             out.append(dataclasses.replace(r, meas=meas))
+    if mode == "per_file" and len(rows) > 1:
+        notes.append("[frame] per_file: each file's frame is fitted on its own rows with the nominal geometry, so each "
+                     "takes up a different part of the geometric errors; `hilcal diagnose` may see a change between "
+                     "the sessions (a session zero shift of tens to hundreds of µm) that the alignment made, not the "
+                     "machine. Base reference targets measured with every pose ([[targets.base]]) register each row "
+                     "to the base itself")
     return out, notes
 
 

@@ -64,17 +64,19 @@ def test_too_few_rows_or_no_rotation_are_refused(robot):
         align_frames(level, inverse_kinematics(Geometry.nominal(robot), level), robot)
 
 
-def _logger_in_tracker_frame(folder):
-    """The logger example's files with their poses moved into the tracker's frame (quaternions via scipy)."""
+def _logger_in_tracker_frame(folder, moved_on_day2: np.ndarray | None = None):
+    """The logger example's files with their poses moved into the tracker's frame (quaternions via scipy); with
+    moved_on_day2, the tracker stood there on the second day (set up again)."""
     shutil.copytree(LOGGER, folder)
     for name in ("day1.csv", "day2.csv"):
+        tracker = moved_on_day2 if name == "day2.csv" and moved_on_day2 is not None else X_POSE
         path = folder / name
         with path.open(newline="") as f:
             rows = list(csv.DictReader(f))
         pos = np.array([[float(r[f"position_{a}"]) for a in "xyz"] for r in rows])
         quat = np.array([[float(r[f"orientation_{a}"]) for a in "xyzw"] for r in rows])
         ypr = Rotation.from_quat(quat).as_euler("ZYX", degrees=True)
-        moved = _compose(X_POSE, np.column_stack([pos, ypr[:, ::-1]]), Y_POSE)
+        moved = _compose(tracker, np.column_stack([pos, ypr[:, ::-1]]), Y_POSE)
         q = _rotation(moved).as_quat()
         for r, p, qq in zip(rows, moved, q, strict=True):
             r.update({f"position_{a}": f"{v:.5f}" for a, v in zip("xyz", p[:3], strict=True)})
@@ -108,6 +110,22 @@ def test_aligned_tracker_log_gives_the_same_diagnosis(tmp_path, robot):
         assert abs(imported.parameters[key] - value) <= reference.std_errors[key], key
     assert imported.after is not None and reference.after is not None
     assert imported.after.position_mm.rms == pytest.approx(reference.after.position_mm.rms, rel=0.05)
+
+
+def test_a_shared_frame_for_a_tracker_set_up_again_is_refused_and_per_file_imports(tmp_path, robot):
+    """The tracker moved 120 mm and turned 3 deg between the days: one frame for both cannot fit (the import says
+    so and names per_file), a frame per file does."""
+    folder = _logger_in_tracker_frame(tmp_path / "logger", X_POSE + np.array([120.0, 0.0, 0.0, 0.0, 0.0, 3.0]))
+    files = [folder / "day1.csv", folder / "day2.csv"]
+    base = (folder / "map.toml").read_text()
+    (folder / "map.toml").write_text(base + '\n[frame]\nalign = "shared"\n')
+    with pytest.raises(ImportFileError, match=r'set up again between the files; set \[frame\] align = "per_file"'):
+        import_recording(files, load_map(folder / "map.toml"), robot=robot, hold_out=parse_hold_out("file:day2.csv"))
+    (folder / "map.toml").write_text(base + '\n[frame]\nalign = "per_file"\n')
+    result = import_recording(files, load_map(folder / "map.toml"), robot=robot,
+                              hold_out=parse_hold_out("file:day2.csv"))
+    direct = read_recording(LOGGER / "simulated.csv", robot)
+    assert np.abs(result.recording.meas[:, :3] - direct.meas[:, :3]).max() < 0.5
 
 
 def test_align_needs_the_robot_file(tmp_path):
