@@ -106,9 +106,11 @@ def _sentence(group: TermGroup, v: np.ndarray, se: np.ndarray, legs: list[int], 
                 "direction of approach (backlash)")
     if group.effect == ZERO_SHIFT:
         moved = [(n, x, s) for n, x, s in zip(group.names, v, se, strict=True) if leg_of(n) in shown]
-        parts = [f"leg {leg_of(n)} {x * 1000:+.1f} ± {s * 1000:.1f} µm (session {_session_of(n)})"
-                 for n, x, s in moved if abs(x) > GRADE_Z * s]
-        return "The legs' zero moved between sessions: " + (", ".join(parts) or "by less than its uncertainty")
+        # the parameter is true minus reported length: positive where the leg now reads short
+        parts = [f"leg {leg_of(n)} reads {abs(x) * 1000:.1f} ± {s * 1000:.1f} µm {'short' if x > 0 else 'long'} in "
+                 f"session {_session_of(n)}" for n, x, s in moved if abs(x) > GRADE_Z * s]
+        return ("The legs' zero moved between sessions (against the first): "
+                + (", ".join(parts) or "by less than its uncertainty"))
     return group.sentence
 
 
