@@ -132,6 +132,8 @@ def _pose_labels(mapping: ImportMap) -> list[str]:
     return [*mapping.position.columns, *_orientation_labels(mapping.orientation)]
 
 
+LEVER_NOTE_MM = 50.0
+"""A target this far from the platform frame's origin gets a note on the lever of its orientation noise."""
 SHARED_FRAME_MARGIN_MM = 2.0
 """A shared frame may leave this much more (RMS) than the files' own frames before it is taken for a moved
 instrument: with few rows a file's own frame also absorbs some geometric error."""
@@ -175,6 +177,12 @@ def _align(rows: list[_FileRows], mapping: ImportMap, robot: Robot | None) -> tu
             _check_shared(fit, rows, robot)
         where = "all files" if mode == "shared" else part[0].table.source
         notes.append(f"[frame] aligned ({where}): {fit.describe()}")
+        lever_mm = float(np.linalg.norm(fit.target_in_platform[:3]))
+        if lever_mm > LEVER_NOTE_MM:
+            notes.append(f"[frame] the target is {lever_mm:.0f} mm from the platform frame's origin ({where}): the "
+                         f"instrument's orientation noise moves the recorded origin on that lever, so its position "
+                         f"sigma per coordinate (--pose-sigma-mm of `hilcal diagnose`) is about sqrt(position sigma² "
+                         f"+ 2/3 (orientation sigma in rad × {lever_mm:.0f} mm)²)")
         for r in part:
             meas = fit.apply(r.meas)
             try:
