@@ -101,6 +101,8 @@ def test_aligned_tracker_log_gives_the_same_diagnosis(tmp_path, robot):
     result = import_recording([folder / "day1.csv", folder / "day2.csv"], load_map(folder / "map.toml"), robot=robot,
                               hold_out=parse_hold_out("file:day2.csv"))
     assert any(note.startswith("[frame] aligned (all files)") for note in result.notes)
+    lever = float(np.linalg.norm(Y_POSE[:3]))  # 61 mm: the probe's orientation noise acts on it
+    assert any(f"the target is {lever:.0f} mm from the platform frame's origin" in note for note in result.notes)
     direct = read_recording(LOGGER / "simulated.csv", robot)
     moved = np.abs(result.recording.meas[:, :3] - direct.meas[:, :3])
     assert moved.max() < 0.5, "the alignment absorbs only the frame-like part of the geometric errors"
