@@ -24,6 +24,8 @@ _POSE_SUFFIXES = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
 CMD_COLUMNS: tuple[str, ...] = tuple(f"cmd_{s}" for s in _POSE_SUFFIXES)
 LEG_COLUMNS: tuple[str, ...] = tuple(f"leg{k}_mm" for k in range(1, 7))
 MEAS_COLUMNS: tuple[str, ...] = tuple(f"meas_{s}" for s in _POSE_SUFFIXES)
+FORCE_COLUMNS: tuple[str, ...] = tuple(f"leg{k}_force_kn" for k in range(1, 7))
+"""Optional measured axial leg loads, kN, compression positive (docs/recording-format.md)."""
 REQUIRED_COLUMNS: tuple[str, ...] = ("seq", "phase", "time_s", *CMD_COLUMNS, *LEG_COLUMNS, *MEAS_COLUMNS)
 PHASES: tuple[str, ...] = ("measure", "verify")
 
@@ -467,6 +469,9 @@ def read_recording(path: str | Path, robot: Robot | None = None, min_measure_row
             extra_cells[name].append(cell[name])
         if "temp_c" in cell:
             _parse_number(cell["temp_c"], loc, i, s, "temp_c")
+        for name in FORCE_COLUMNS:  # measured loads: a number, or empty where the row has none
+            if cell.get(name, "").strip():
+                _parse_number(cell[name], loc, i, s, name)
 
     extra = _normalise_extra(extra_cells)
     rec = Recording(

@@ -17,7 +17,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from hilcal.kinematics import Geometry, gravity_wrench, leg_forces, leg_vectors, split_pose
-from hilcal.recording import SESSION_GAP_S, Recording, session_numbers
+from hilcal.recording import FORCE_COLUMNS, SESSION_GAP_S, Recording, session_numbers
 from hilcal.robot import Robot
 
 DIRECTION_DEADBAND_MM = 1e-3
@@ -28,6 +28,18 @@ TEMPERATURE_WINDOW = 7
 def detect_sessions(time_s: np.ndarray, gap_s: float = SESSION_GAP_S) -> np.ndarray:
     """Session number (0, 1, ...) of every row in execution order (the recording format's rule)."""
     return session_numbers(time_s, gap_s)
+
+
+def measured_forces_kn(rec: Recording) -> np.ndarray | None:
+    """The recording's measured axial leg loads [N, 6] (kN, compression positive; NaN where a row has none), or
+    None without the leg1_force_kn ... leg6_force_kn columns. Where a row has all six they replace the statics of
+    the robot file's mass: a hydraulic machine's pressures know the payload and the moves' dynamics, the file does
+    not."""
+    if not all(name in rec.extra for name in FORCE_COLUMNS):
+        return None
+    columns = [rec.extra[name] for name in FORCE_COLUMNS]  # a column with empty cells is read as text
+    return np.column_stack([c if c.dtype.kind == "f" else np.array([float(v) if str(v).strip() else np.nan
+                                                                    for v in c]) for c in columns])
 
 
 def smooth_temperature(temp_c: np.ndarray, window: int = TEMPERATURE_WINDOW) -> np.ndarray:
@@ -127,6 +139,10 @@ class EffectContext:
         """Loads from statics at the measured poses; motion history from the row order, per session."""
         nominal = Geometry.nominal(robot)
         force = leg_forces(nominal, rec.meas, gravity_wrench(robot, rec.meas)) / 1000.0
+        measured = measured_forces_kn(rec)
+        if measured is not None:
+            rows = np.all(np.isfinite(measured), axis=1)
+            force[rows] = measured[rows]
         session = detect_sessions(rec.time_s)
         direction, move = motion_history(rec.legs_mm, session)
         base, platform = joint_angles(robot, rec.meas)

@@ -33,7 +33,14 @@ from hilcal.importing.sessions import (
 from hilcal.importing.summary import SessionSummary, summarise
 from hilcal.importing.table import Table, read_table
 from hilcal.importing.targets import register_targets
-from hilcal.recording import TEMP_RANGE_C, Recording, RecordingError, recording_from_arrays, session_numbers
+from hilcal.recording import (
+    FORCE_COLUMNS,
+    TEMP_RANGE_C,
+    Recording,
+    RecordingError,
+    recording_from_arrays,
+    session_numbers,
+)
 from hilcal.robot import Robot
 from hilcal.wiring import LegWiring, check_wiring
 
@@ -64,6 +71,7 @@ class _FileRows:
     phase: np.ndarray
     temp_c: np.ndarray | None
     fit_rms_mm: np.ndarray | None
+    force_kn: np.ndarray | None = None
 
 
 def _at(table: Table, columns: Sequence[str], problem: ValueProblem) -> ImportFileError:
@@ -245,7 +253,10 @@ def _convert(table: Table, mapping: ImportMap, robot: Robot | None, hold_out: Ho
             i = int(np.argmax(bad))
             raise table.error(i, column, f"{temp[i]:g} °C is outside [{TEMP_RANGE_C[0]:g}, {TEMP_RANGE_C[1]:g}] °C: "
                               f"check [temperature] unit ({mapping.temperature.unit})")
-    return _FileRows(table, lengths, meas, cmd, seconds, phase, temp, rms)
+    force = None
+    if mapping.force is not None:
+        force = mapping.force.forces_kn({c: table.numbers([c])[:, 0] for c in mapping.force.all_columns()})
+    return _FileRows(table, lengths, meas, cmd, seconds, phase, temp, rms, force)
 
 
 def _check_columns(tables: Sequence[Table], mapping: ImportMap) -> None:
@@ -404,6 +415,9 @@ def import_recording(
         extra["sphere_fit_rms_mm"] = np.concatenate([r.fit_rms_mm for r in rows])
     if mapping.temperature is not None:
         extra["temp_c"] = np.concatenate([r.temp_c for r in rows])
+    if mapping.force is not None:
+        forces = np.concatenate([r.force_kn for r in rows])
+        extra |= {name: forces[:, k] for k, name in enumerate(FORCE_COLUMNS)}
     file_of_row = np.concatenate([np.full(r.table.n, r.table.name, dtype=object) for r in rows]).astype(str)
     extra["source_file"] = file_of_row
     extra["source_line"] = np.concatenate([np.asarray(r.table.lines, dtype=float) for r in rows])

@@ -225,6 +225,58 @@ class TemperatureMap(_Strict):
         return values
 
 
+PASCAL_PER_UNIT = {"bar": 1e5, "MPa": 1e6, "psi": 6894.757293168}
+KN_PER_UNIT = {"kN": 1.0, "N": 1e-3, "lbf": 4.4482216152605e-3}
+
+
+class ForceMap(_Strict):
+    """Measured leg loads, written as ``leg1_force_kn`` ... ``leg6_force_kn`` (axial, positive = compression: the
+    leg pushes the platform): six force columns, or a hydraulic cylinder's cap- and rod-side pressures and bores
+    (force = p_cap · π/4 · bore² − p_rod · π/4 · (bore² − rod²))."""
+
+    columns: Names6 | None = Field(default=None, description="axial force per leg")
+    cap_columns: Names6 | None = Field(default=None, description="cap-side (extending) pressure per leg")
+    rod_columns: Names6 | None = Field(default=None, description="rod-side (retracting) pressure per leg")
+    unit: Literal["kN", "N", "lbf", "bar", "MPa", "psi"]
+    bore_mm: PerLeg | None = Field(default=None, description="piston diameter, one or six")
+    rod_mm: PerLeg | None = Field(default=None, description="rod diameter, one or six")
+    tension_positive: bool = Field(default=False, description="the logger writes tension as positive")
+
+    @model_validator(mode="after")
+    def _forces_or_pressures(self) -> ForceMap:
+        pressure = self.unit in PASCAL_PER_UNIT
+        if pressure:
+            if self.cap_columns is None or self.bore_mm is None:
+                raise ValueError(f"pressures in {self.unit} need cap_columns and bore_mm (and rod_columns with rod_mm)")
+            if (self.rod_columns is None) != (self.rod_mm is None):
+                raise ValueError("rod_columns and rod_mm go together")
+            if self.columns is not None:
+                raise ValueError(f"columns are forces; pressures in {self.unit} go in cap_columns and rod_columns")
+            bore = np.asarray(self.bore_mm, dtype=float)
+            rod = np.asarray(0.0 if self.rod_mm is None else self.rod_mm, dtype=float)
+            if np.any(bore <= 0) or np.any(rod < 0) or np.any(rod >= bore):
+                raise ValueError("need 0 <= rod_mm < bore_mm and bore_mm > 0")
+        elif self.columns is None or self.cap_columns is not None or self.rod_columns is not None:
+            raise ValueError(f"forces in {self.unit} need columns (six), and no cap_columns or rod_columns")
+        return self
+
+    def all_columns(self) -> list[str]:
+        return [*(self.columns or ()), *(self.cap_columns or ()), *(self.rod_columns or ())]
+
+    def forces_kn(self, values: dict[str, np.ndarray]) -> np.ndarray:
+        """(n, 6) axial leg forces, kN, compression positive, from the mapped columns' values."""
+        sign = -1.0 if self.tension_positive else 1.0
+        if self.columns is not None:
+            return sign * KN_PER_UNIT[self.unit] * np.column_stack([values[c] for c in self.columns])
+        bore_m2 = np.pi / 4.0 * (np.broadcast_to(np.asarray(self.bore_mm, dtype=float), (6,)) * 1e-3) ** 2
+        rod_m2 = np.pi / 4.0 * (np.broadcast_to(np.asarray(self.rod_mm or 0.0, dtype=float), (6,)) * 1e-3) ** 2
+        pa = PASCAL_PER_UNIT[self.unit]
+        cap = np.column_stack([values[c] for c in self.cap_columns or ()]) * pa * bore_m2
+        rod = 0.0 if self.rod_columns is None else np.column_stack([values[c] for c in self.rod_columns]) * pa * (
+            bore_m2 - rod_m2)
+        return sign * (cap - rod) / 1000.0
+
+
 class FitRmsMap(_Strict):
     """The pose measurement's registration RMS as the CMM or tracker software writes it: ``sphere_fit_rms_mm``."""
 
@@ -266,6 +318,7 @@ class ImportMap(_Strict):
     phase: PhaseMap | None = None
     temperature: TemperatureMap | None = None
     fit_rms: FitRmsMap | None = None
+    force: ForceMap | None = None
     frame: FrameMap = Field(default_factory=FrameMap)
     csv: CsvMap = Field(default_factory=CsvMap)
 
@@ -290,6 +343,8 @@ class ImportMap(_Strict):
         if self.command is not None:
             names += [*self.command.position.columns, *self.command.orientation.columns]
         names += [m.column for m in (self.time, self.phase, self.temperature, self.fit_rms) if m is not None]
+        if self.force is not None:
+            names += self.force.all_columns()
         return list(dict.fromkeys(names))
 
 

@@ -160,6 +160,29 @@ def test_skip_incomplete_leaves_out_and_lists_rows_without_a_measurement_and_rep
         import_recording([a, a], map_from_dict(MAP), robot=robot, skip_incomplete=True)
 
 
+def test_cylinder_pressures_become_leg_loads(tmp_path, robot):
+    """Cap- and rod-side pressures in psi with a 180 mm bore and a 100 mm rod: force = p_cap A_cap - p_rod A_annulus
+    (compression positive), worked out here with the areas in m² and 1 psi = 6894.757 Pa."""
+    path, _ = _write(tmp_path / "day1.csv", robot, 10, 1)
+    rng = np.random.default_rng(3)
+    cap, rod = rng.uniform(500.0, 3000.0, (10, 6)), rng.uniform(100.0, 800.0, (10, 6))
+    lines = path.read_text().splitlines()
+    lines[0] += "," + ",".join([f"cap{k}" for k in range(1, 7)] + [f"rod{k}" for k in range(1, 7)])
+    for i in range(10):
+        lines[i + 1] += "," + ",".join(repr(float(v)) for v in (*cap[i], *rod[i]))
+    path.write_text("\n".join(lines) + "\n")
+    force = {"cap_columns": [f"cap{k}" for k in range(1, 7)], "rod_columns": [f"rod{k}" for k in range(1, 7)],
+             "unit": "psi", "bore_mm": 180.0, "rod_mm": 100.0}
+    rec = import_recording([path], map_from_dict({**MAP, "force": force}), robot=robot,
+                           hold_out=HoldOut(every=5)).recording
+    a_cap, a_annulus = np.pi / 4 * 0.180**2, np.pi / 4 * (0.180**2 - 0.100**2)
+    expected_kn = (cap * a_cap - rod * a_annulus) * 6894.757 / 1000.0
+    got = np.column_stack([rec.extra[f"leg{k}_force_kn"] for k in range(1, 7)])
+    np.testing.assert_allclose(got, expected_kn, rtol=1e-6)
+    with pytest.raises(ValueError, match="need cap_columns and bore_mm"):
+        map_from_dict({**MAP, "force": {"cap_columns": force["cap_columns"], "unit": "bar"}})
+
+
 def test_a_unit_that_does_not_fit_is_named(tmp_path, robot):
     path, _ = _write(tmp_path / "log.csv", robot, 10, 5)
     err = _error([path], {**MAP, "orientation": {"columns": POSE[3:], "kind": "rpy_rad"}}, robot=robot)
