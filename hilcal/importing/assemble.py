@@ -18,7 +18,7 @@ import numpy as np
 
 from hilcal.importing import conversions as conv
 from hilcal.importing.errors import ImportFileError, ValueProblem
-from hilcal.importing.frames import FrameAlignment, FrameAlignmentError, align_frames
+from hilcal.importing.frames import FrameAlignment, FrameAlignmentError, align_frames, align_frames_shared_target
 from hilcal.importing.incomplete import leave_out_incomplete
 from hilcal.importing.mapping import ImportMap, OrientationMap, PoseColumns
 from hilcal.importing.sessions import (
@@ -154,6 +154,23 @@ def _fit_frame(part: list[_FileRows], robot: Robot) -> FrameAlignment:
         raise ImportFileError(", ".join(r.table.source for r in part), str(e)) from None
 
 
+def _fit_shared_target(rows: list[_FileRows], robot: Robot) -> list[FrameAlignment]:
+    """Every file's instrument frame with one target place; refused (with the key to set) where the files' own
+    target places fit far better: the target was mounted anew too."""
+    try:
+        joint, own = align_frames_shared_target([(r.meas, r.legs_mm) for r in rows], robot)
+    except FrameAlignmentError as e:
+        raise ImportFileError(", ".join(r.table.source for r in rows), str(e)) from None
+    worst = max(range(len(rows)), key=lambda k: joint[k].rms_position_mm - 3.0 * own[k].rms_position_mm)
+    if joint[worst].rms_position_mm > 3.0 * own[worst].rms_position_mm + SHARED_FRAME_MARGIN_MM:
+        raise ImportFileError(
+            rows[worst].table.source,
+            f"one target place for every file leaves {joint[worst].rms_position_mm:.3f} mm RMS in this file, its "
+            f"own {own[worst].rms_position_mm:.3f} mm: the target was mounted anew between the files; set [frame] "
+            'target = "per_file"')
+    return joint
+
+
 def _check_shared(shared: FrameAlignment, rows: list[_FileRows], robot: Robot) -> None:
     """A shared frame that the files' own frames beat by far: the instrument was set up again between files."""
     try:
@@ -176,17 +193,19 @@ def _align(rows: list[_FileRows], mapping: ImportMap, robot: Robot | None) -> tu
     if robot is None:
         raise ImportFileError("the mapping file", f"[frame] align = {mode!r} needs the robot file (--robot): the "
                               "nominal geometry turns leg lengths into the poses the instrument's frame is fitted to")
-    parts = [rows] if mode == "shared" else [[r] for r in rows]
+    if mode == "per_file" and mapping.frame.target == "shared" and len(rows) > 1:
+        pairs = list(zip([[r] for r in rows], _fit_shared_target(rows, robot), strict=True))
+    else:
+        pairs = [(part, _fit_frame(part, robot)) for part in ([rows] if mode == "shared" else [[r] for r in rows])]
+        if mode == "shared" and len(rows) > 1:
+            _check_shared(pairs[0][1], rows, robot)
     out: list[_FileRows] = []
     notes = []
-    for part in parts:
-        fit = _fit_frame(part, robot)
-        if mode == "shared" and len(rows) > 1:
-            _check_shared(fit, rows, robot)
+    for part, fit in pairs:
         where = "all files" if mode == "shared" else part[0].table.source
         notes.append(f"[frame] aligned ({where}): {fit.describe()}")
         lever_mm = float(np.linalg.norm(fit.target_in_platform[:3]))
-        if lever_mm > LEVER_NOTE_MM:
+        if lever_mm > LEVER_NOTE_MM and not any(f"the target is {lever_mm:.0f} mm" in n for n in notes):
             notes.append(f"[frame] the target is {lever_mm:.0f} mm from the platform frame's origin ({where}): the "
                          f"instrument's orientation noise moves the recorded origin on that lever, so its position "
                          f"sigma per coordinate (--pose-sigma-mm of `hilcal diagnose`) is about sqrt(position sigma² "
@@ -200,11 +219,11 @@ def _align(rows: list[_FileRows], mapping: ImportMap, robot: Robot | None) -> tu
                           "[frame] alignment)")) from None
             out.append(dataclasses.replace(r, meas=meas))
     if mode == "per_file" and len(rows) > 1:
-        notes.append("[frame] per_file: each file's frame is fitted on its own rows with the nominal geometry, so each "
-                     "takes up a different part of the geometric errors; `hilcal diagnose` may see a change between "
-                     "the sessions (a session zero shift of tens to hundreds of µm) that the alignment made, not the "
-                     "machine. Base reference targets measured with every pose ([[targets.base]]) register each row "
-                     "to the base itself")
+        notes.append("[frame] per_file: each file's instrument frame is fitted on its own rows with the nominal "
+                     "geometry, so each takes up a different part of the geometric errors; `hilcal diagnose` may see "
+                     "a change between the sessions (a session zero shift of tens to hundreds of µm) that the "
+                     "alignment made, not the machine. Base reference targets measured with every pose "
+                     "([[targets.base]]) register each row to the base itself")
     return out, notes
 
 

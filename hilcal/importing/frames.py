@@ -128,3 +128,43 @@ def align_frames(logged: np.ndarray, legs_mm: np.ndarray, robot: Robot) -> Frame
     Y = pose_from_matrix(Rotation.from_rotvec(fit.x[6:9]).as_matrix()[None], fit.x[9:][None])[0]
     return FrameAlignment(X, Y, float(np.sqrt(np.mean(np.sum(r[:, :3] ** 2, axis=1)))),
                           float(np.degrees(np.sqrt(np.mean(np.sum((r[:, 3:] / length) ** 2, axis=1))))), n)
+
+
+def align_frames_shared_target(parts: list[tuple[np.ndarray, np.ndarray]], robot: Robot
+                               ) -> tuple[list[FrameAlignment], list[FrameAlignment]]:
+    """One instrument frame X_f per part (logged poses, leg lengths) and one target place Y for all: the instrument
+    set up anew for every file, the target left on the platform. Started from each part's own alignment (its Y
+    averaged), refined jointly. Returns the joint alignments (each with its part's RMS) and the parts' own."""
+    own = [align_frames(logged, legs, robot) for logged, legs in parts]
+    geometry, length = Geometry.nominal(robot), robot.characteristic_length_mm
+    data = []
+    for logged, legs in parts:
+        RT, tT = split_pose(np.atleast_2d(np.asarray(logged, dtype=float)))
+        RB, tB = split_pose(forward_kinematics(geometry, legs, robot.home))
+        data.append((RT, tT, RB, tB))
+
+    def vector(pose: np.ndarray) -> np.ndarray:
+        R, t = split_pose(pose[None])
+        return np.concatenate([Rotation.from_matrix(R[0]).as_rotvec(), t[0]])
+
+    y0 = vector(pose_from_matrix(Rotation.from_matrix(np.stack([split_pose(a.target_in_platform[None])[0][0]
+                                                                 for a in own])).mean().as_matrix()[None],
+                                 np.mean([a.target_in_platform[:3] for a in own], axis=0)[None])[0])
+    x0 = np.concatenate([y0, *[vector(a.base_in_instrument) for a in own]])
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        return np.concatenate([_residuals(np.concatenate([x[6 + 6 * k:12 + 6 * k], x[:6]]), *d, length)
+                               for k, d in enumerate(data)])
+
+    fit = least_squares(residuals, x0, method="lm", x_scale="jac")
+    Y = pose_from_matrix(Rotation.from_rotvec(fit.x[:3]).as_matrix()[None], fit.x[3:6][None])[0]
+    out, start = [], 0
+    for k, (RT, _, _, _) in enumerate(data):
+        n = len(RT)
+        r = fit.fun[6 * start:6 * (start + n)].reshape(n, 6)
+        start += n
+        xk = fit.x[6 + 6 * k:12 + 6 * k]
+        X = pose_from_matrix(Rotation.from_rotvec(xk[:3]).as_matrix()[None], xk[3:][None])[0]
+        out.append(FrameAlignment(X, Y, float(np.sqrt(np.mean(np.sum(r[:, :3] ** 2, axis=1)))),
+                                  float(np.degrees(np.sqrt(np.mean(np.sum((r[:, 3:] / length) ** 2, axis=1))))), n))
+    return out, own

@@ -287,9 +287,12 @@ class FitRmsMap(_Strict):
 class FrameMap(_Strict):
     """Poses logged in the instrument's own frame: align them to the base frame by the leg lengths (needs the robot).
 
-    ``"shared"``: one instrument frame for every file; ``"per_file"``: the instrument was set up anew for each file."""
+    ``align``: ``"shared"``, one instrument frame for every file; ``"per_file"``, the instrument was set up anew for
+    each file. ``target``, with per_file: ``"shared"`` (default), the target stayed mounted on the platform while the
+    instrument moved, so one target place is fitted with every file's frame; ``"per_file"``, it was mounted anew too."""
 
     align: Literal["none", "shared", "per_file"] = "none"
+    target: Literal["shared", "per_file"] = "shared"
 
 
 class CsvMap(_Strict):

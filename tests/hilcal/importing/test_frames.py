@@ -64,19 +64,21 @@ def test_too_few_rows_or_no_rotation_are_refused(robot):
         align_frames(level, inverse_kinematics(Geometry.nominal(robot), level), robot)
 
 
-def _logger_in_tracker_frame(folder, moved_on_day2: np.ndarray | None = None):
+def _logger_in_tracker_frame(folder, moved_on_day2: np.ndarray | None = None, probe_on_day2: np.ndarray | None = None):
     """The logger example's files with their poses moved into the tracker's frame (quaternions via scipy); with
-    moved_on_day2, the tracker stood there on the second day (set up again)."""
+    moved_on_day2, the tracker stood there on the second day (set up again); with probe_on_day2, the probe was
+    mounted there."""
     shutil.copytree(LOGGER, folder)
     for name in ("day1.csv", "day2.csv"):
         tracker = moved_on_day2 if name == "day2.csv" and moved_on_day2 is not None else X_POSE
+        probe = probe_on_day2 if name == "day2.csv" and probe_on_day2 is not None else Y_POSE
         path = folder / name
         with path.open(newline="") as f:
             rows = list(csv.DictReader(f))
         pos = np.array([[float(r[f"position_{a}"]) for a in "xyz"] for r in rows])
         quat = np.array([[float(r[f"orientation_{a}"]) for a in "xyzw"] for r in rows])
         ypr = Rotation.from_quat(quat).as_euler("ZYX", degrees=True)
-        moved = _compose(tracker, np.column_stack([pos, ypr[:, ::-1]]), Y_POSE)
+        moved = _compose(tracker, np.column_stack([pos, ypr[:, ::-1]]), probe)
         q = _rotation(moved).as_quat()
         for r, p, qq in zip(rows, moved, q, strict=True):
             r.update({f"position_{a}": f"{v:.5f}" for a, v in zip("xyz", p[:3], strict=True)})
@@ -124,6 +126,25 @@ def test_a_shared_frame_for_a_tracker_set_up_again_is_refused_and_per_file_impor
     with pytest.raises(ImportFileError, match=r'set up again between the files; set \[frame\] align = "per_file"'):
         import_recording(files, load_map(folder / "map.toml"), robot=robot, hold_out=parse_hold_out("file:day2.csv"))
     (folder / "map.toml").write_text(base + '\n[frame]\nalign = "per_file"\n')
+    result = import_recording(files, load_map(folder / "map.toml"), robot=robot,
+                              hold_out=parse_hold_out("file:day2.csv"))
+    direct = read_recording(LOGGER / "simulated.csv", robot)
+    assert np.abs(result.recording.meas[:, :3] - direct.meas[:, :3]).max() < 0.5
+
+
+def test_a_probe_mounted_anew_needs_its_own_target_place_per_file(tmp_path, robot):
+    """per_file fits one target place with every file's tracker frame (the probe stayed on the platform); a probe
+    mounted 40 mm elsewhere on day 2 makes that fit far worse than the file's own, which is refused with the key
+    to set; target = "per_file" then imports."""
+    moved_probe = Y_POSE + np.array([40.0, 0.0, 0.0, 0.0, 0.0, 20.0])
+    folder = _logger_in_tracker_frame(tmp_path / "logger", X_POSE + np.array([120.0, 0.0, 0.0, 0.0, 0.0, 3.0]),
+                                      moved_probe)
+    files = [folder / "day1.csv", folder / "day2.csv"]
+    base = (folder / "map.toml").read_text()
+    (folder / "map.toml").write_text(base + '\n[frame]\nalign = "per_file"\n')
+    with pytest.raises(ImportFileError, match=r'mounted anew between the files; set \[frame\] target = "per_file"'):
+        import_recording(files, load_map(folder / "map.toml"), robot=robot, hold_out=parse_hold_out("file:day2.csv"))
+    (folder / "map.toml").write_text(base + '\n[frame]\nalign = "per_file"\ntarget = "per_file"\n')
     result = import_recording(files, load_map(folder / "map.toml"), robot=robot,
                               hold_out=parse_hold_out("file:day2.csv"))
     direct = read_recording(LOGGER / "simulated.csv", robot)
