@@ -94,7 +94,7 @@ def test_repeats_are_found_by_legs_without_commanded_poses(robot):
 
 def test_repeats_of_a_commanded_pose_allow_the_servo_s_scatter_but_not_hours_between_visits(robot):
     """A real servo lands within µm to tens of µm: visits of one commanded pose minutes apart are repeats even when
-    their legs differ by 20 µm; visits hours apart (drift between them) and a landing 0.2 mm off are not."""
+    their legs differ by 20 µm; visits two hours apart (drift between them) and a landing 0.2 mm off are not."""
     cmd = np.tile(robot.home, (7, 1))
     cmd[3:5, 0] += 50.0  # a second pose, visited at t = 100 s and two hours later
     cmd[5:7, 1] += 50.0  # a third, whose second landing is 0.2 mm off on one leg
@@ -102,7 +102,7 @@ def test_repeats_of_a_commanded_pose_allow_the_servo_s_scatter_but_not_hours_bet
     legs[1, 2] += 0.012
     legs[2, 4] -= 0.020
     legs[6, 0] += 0.2
-    time_s = np.array([0.0, 30.0, 60.0, 100.0, 7300.0, 7400.0, 7430.0])
+    time_s = np.array([0.0, 30.0, 60.0, 100.0, 7300.0, 7400.0, 7430.0])  # the second pose: two hours apart
     rec = recording_from_arrays(np.arange(1, 8), ["measure"] * 7, time_s, cmd, legs, np.tile(robot.home, (7, 1)),
                                 min_measure_rows=1)
     groups = find_repeats(rec, np.zeros(7, dtype=int))
