@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from hilcal.discovery.context import EffectContext, detect_sessions, motion_history
+from hilcal.discovery.context import EffectContext, detect_sessions, joint_angles, motion_history
 from hilcal.discovery.generic_terms import bspline_basis, generic_groups
 from hilcal.discovery.noise import (
     find_repeats,
@@ -22,6 +22,7 @@ from hilcal.discovery.term_groups import GENERIC, TermGroup
 from hilcal.planning import design
 from hilcal.pose_measurement import pose_from_spheres, rigid_fit
 from hilcal.recording import recording_from_arrays
+from tests.poses import feasible_random_poses
 
 
 def test_sessions_start_at_a_clock_reset_or_a_long_pause():
@@ -108,6 +109,39 @@ def test_repeats_of_a_commanded_pose_allow_the_servo_s_scatter_but_not_hours_bet
     groups = find_repeats(rec, np.zeros(7, dtype=int))
     assert [g.tolist() for g in groups] == [[0, 1, 2]]
     assert revisited_poses(rec, groups) == 2
+
+
+def test_joint_angles_are_what_docs_diagnosis_tells_a_controller_to_compute(robot):
+    """The recipe of docs/diagnosis.md (loadable corrections), written here with numpy: the controller that loads a
+    joint-angle correction computes the same angles as the diagnosis."""
+    poses = feasible_random_poses(robot, 5, np.random.default_rng(4))
+    roll, pitch, yaw = np.radians(robot.home[3:])
+
+    def rot(r: float, p: float, y: float) -> np.ndarray:
+        cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+        return (np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+                @ np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]]))
+
+    def unit_legs(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        v = robot.a @ R.T + t - robot.b
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    def frame(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        up = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        e1 = np.cross(up, d) / np.linalg.norm(np.cross(up, d))
+        return e1, np.cross(d, e1)
+
+    R0 = rot(roll, pitch, yaw)
+    d0 = unit_legs(R0, robot.home[:3])
+    base, platform = joint_angles(robot, poses)
+    for n, q in enumerate(poses):
+        R = rot(*np.radians(q[3:]))
+        u = unit_legs(R, q[:3])
+        for i in range(6):
+            e1, e2 = frame(d0[i])
+            f1, f2 = frame(R0.T @ d0[i])
+            np.testing.assert_allclose(base[n, i], [u[i] @ e1, u[i] @ e2], atol=1e-12)
+            np.testing.assert_allclose(platform[n, i], [R.T @ u[i] @ f1, R.T @ u[i] @ f2], atol=1e-12)
 
 
 def _null_state(rng, n_poses=30, p=20):
