@@ -147,6 +147,11 @@ SHARED_FRAME_MARGIN_MM = 2.0
 instrument: with few rows a file's own frame also absorbs some geometric error."""
 
 
+def _far_worse(shared_rms_mm: float, own_rms_mm: float) -> bool:
+    """A frame (or target place) shared by files fits far worse than a file's own: it moved between the files."""
+    return shared_rms_mm > 3.0 * own_rms_mm + SHARED_FRAME_MARGIN_MM
+
+
 def _fit_frame(part: list[_FileRows], robot: Robot) -> FrameAlignment:
     try:
         return align_frames(np.concatenate([r.meas for r in part]), np.concatenate([r.legs_mm for r in part]), robot)
@@ -162,7 +167,7 @@ def _fit_shared_target(rows: list[_FileRows], robot: Robot) -> list[FrameAlignme
     except FrameAlignmentError as e:
         raise ImportFileError(", ".join(r.table.source for r in rows), str(e)) from None
     worst = max(range(len(rows)), key=lambda k: joint[k].rms_position_mm - 3.0 * own[k].rms_position_mm)
-    if joint[worst].rms_position_mm > 3.0 * own[worst].rms_position_mm + SHARED_FRAME_MARGIN_MM:
+    if _far_worse(joint[worst].rms_position_mm, own[worst].rms_position_mm):
         raise ImportFileError(
             rows[worst].table.source,
             f"one target place for every file leaves {joint[worst].rms_position_mm:.3f} mm RMS in this file, its "
@@ -177,7 +182,7 @@ def _check_shared(shared: FrameAlignment, rows: list[_FileRows], robot: Robot) -
         own = max(align_frames(r.meas, r.legs_mm, robot).rms_position_mm for r in rows)
     except FrameAlignmentError:
         return  # a file too small to align alone: nothing to compare with
-    if shared.rms_position_mm > 3.0 * own + SHARED_FRAME_MARGIN_MM:
+    if _far_worse(shared.rms_position_mm, own):
         raise ImportFileError(
             ", ".join(r.table.source for r in rows),
             f'[frame] align = "shared" leaves {shared.rms_position_mm:.3f} mm RMS between the logged poses and the '

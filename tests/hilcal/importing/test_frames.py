@@ -116,20 +116,30 @@ def test_aligned_tracker_log_gives_the_same_diagnosis(tmp_path, robot):
     assert imported.after.position_mm.rms == pytest.approx(reference.after.position_mm.rms, rel=0.05)
 
 
+TRACKER_MOVED = np.array([120.0, 0.0, 0.0, 0.0, 0.0, 3.0])
+"""The tracker set up again on day 2: 120 mm away and turned by 3 deg."""
+
+
+def _import_with_frame(folder, robot, frame: str):
+    """Both days imported with the example's map plus a [frame] section (its lines given), day 2 held out."""
+    (folder / "frame_map.toml").write_text((folder / "map.toml").read_text() + f"\n[frame]\n{frame}\n")
+    return import_recording([folder / "day1.csv", folder / "day2.csv"], load_map(folder / "frame_map.toml"),
+                            robot=robot, hold_out=parse_hold_out("file:day2.csv"))
+
+
+def _assert_base_frame(result, robot) -> None:
+    """The aligned poses are the simulator's own (base frame) to well within the geometric errors."""
+    direct = read_recording(LOGGER / "simulated.csv", robot)
+    assert np.abs(result.recording.meas[:, :3] - direct.meas[:, :3]).max() < 0.5
+
+
 def test_a_shared_frame_for_a_tracker_set_up_again_is_refused_and_per_file_imports(tmp_path, robot):
     """The tracker moved 120 mm and turned 3 deg between the days: one frame for both cannot fit (the import says
     so and names per_file), a frame per file does."""
-    folder = _logger_in_tracker_frame(tmp_path / "logger", X_POSE + np.array([120.0, 0.0, 0.0, 0.0, 0.0, 3.0]))
-    files = [folder / "day1.csv", folder / "day2.csv"]
-    base = (folder / "map.toml").read_text()
-    (folder / "map.toml").write_text(base + '\n[frame]\nalign = "shared"\n')
+    folder = _logger_in_tracker_frame(tmp_path / "logger", X_POSE + TRACKER_MOVED)
     with pytest.raises(ImportFileError, match=r'set up again between the files; set \[frame\] align = "per_file"'):
-        import_recording(files, load_map(folder / "map.toml"), robot=robot, hold_out=parse_hold_out("file:day2.csv"))
-    (folder / "map.toml").write_text(base + '\n[frame]\nalign = "per_file"\n')
-    result = import_recording(files, load_map(folder / "map.toml"), robot=robot,
-                              hold_out=parse_hold_out("file:day2.csv"))
-    direct = read_recording(LOGGER / "simulated.csv", robot)
-    assert np.abs(result.recording.meas[:, :3] - direct.meas[:, :3]).max() < 0.5
+        _import_with_frame(folder, robot, 'align = "shared"')
+    _assert_base_frame(_import_with_frame(folder, robot, 'align = "per_file"'), robot)
 
 
 def test_a_probe_mounted_anew_needs_its_own_target_place_per_file(tmp_path, robot):
@@ -137,18 +147,10 @@ def test_a_probe_mounted_anew_needs_its_own_target_place_per_file(tmp_path, robo
     mounted 40 mm elsewhere on day 2 makes that fit far worse than the file's own, which is refused with the key
     to set; target = "per_file" then imports."""
     moved_probe = Y_POSE + np.array([40.0, 0.0, 0.0, 0.0, 0.0, 20.0])
-    folder = _logger_in_tracker_frame(tmp_path / "logger", X_POSE + np.array([120.0, 0.0, 0.0, 0.0, 0.0, 3.0]),
-                                      moved_probe)
-    files = [folder / "day1.csv", folder / "day2.csv"]
-    base = (folder / "map.toml").read_text()
-    (folder / "map.toml").write_text(base + '\n[frame]\nalign = "per_file"\n')
+    folder = _logger_in_tracker_frame(tmp_path / "logger", X_POSE + TRACKER_MOVED, moved_probe)
     with pytest.raises(ImportFileError, match=r'mounted anew between the files; set \[frame\] target = "per_file"'):
-        import_recording(files, load_map(folder / "map.toml"), robot=robot, hold_out=parse_hold_out("file:day2.csv"))
-    (folder / "map.toml").write_text(base + '\n[frame]\nalign = "per_file"\ntarget = "per_file"\n')
-    result = import_recording(files, load_map(folder / "map.toml"), robot=robot,
-                              hold_out=parse_hold_out("file:day2.csv"))
-    direct = read_recording(LOGGER / "simulated.csv", robot)
-    assert np.abs(result.recording.meas[:, :3] - direct.meas[:, :3]).max() < 0.5
+        _import_with_frame(folder, robot, 'align = "per_file"')
+    _assert_base_frame(_import_with_frame(folder, robot, 'align = "per_file"\ntarget = "per_file"'), robot)
 
 
 def test_align_needs_the_robot_file(tmp_path):
