@@ -226,7 +226,7 @@ def _align(rows: list[_FileRows], mapping: ImportMap, robot: Robot | None) -> tu
     if mode == "per_file" and len(rows) > 1:
         notes.append("[frame] per_file: each file's instrument frame is fitted on its own rows with the nominal "
                      "geometry, so each takes up a different part of the geometric errors; `hilcal diagnose` may see "
-                     "a change between the sessions (a session zero shift of tens to hundreds of µm) that the "
+                     "a change between the sessions (a session zero shift) that the "
                      "alignment made, not the machine. Base reference targets measured with every pose "
                      "([[targets.base]]) register each row to the base itself")
     return out, notes
