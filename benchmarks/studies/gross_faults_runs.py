@@ -1,0 +1,281 @@
+"""The gross-faults study's cases and one case's run: a whole `hilcal run --sim --yes` of a badly set-up machine.
+
+A case is a robot (the paper robot, `examples/hexapod_small.toml`, `examples/hexapod_stroke320.toml`) and a fault
+on the simulated rig: one or two legs' transducer gradient wrong by 0.5-9 %, every joint and leg offset off by
+N(0, s) with s 1-4 mm, the CMM station's published alignment off by 5-50 mm, or a dead transducer. Each robot also
+runs its healthy rig (the simulator's defaults: the paper's Table 2 errors mapped onto the robot, a 2 mm alignment
+error), which the faulty runs are compared with. Every run uses rig seed 1 and near-instant devices, as the other
+run-level studies do.
+
+``run_case(case, work)`` runs one case in its own folder and returns its figures (a test can call it on one
+case); ``summarize(run_dir, code, output)`` reads them from a finished run's folder.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from fnmatch import fnmatch
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[2]
+ROBOTS: dict[str, Path | None] = {"paper": None, "small": ROOT / "examples" / "hexapod_small.toml",
+                                  "stroke320": ROOT / "examples" / "hexapod_stroke320.toml"}
+"""The robots: None is the built-in paper Table 1 robot."""
+ROBOT_LABELS = {"paper": "paper robot (built-in Table 1)",
+                "small": "small electric hexapod (examples/hexapod_small.toml, 40 mm stroke)",
+                "stroke320": "electric hexapod with 320 mm of stroke (examples/hexapod_stroke320.toml)"}
+RIG_SEED = 1
+FAST: dict[str, Any] = {"controller": {"time_scale": 100000.0}, "cmm": {"time_scale": 0.0},
+                        "rig": {"temperature": {"drift_k_per_h": 0.0, "amplitude_k": 0.0}}}
+"""The near-instant servo and CMM of the other run-level studies (physics_study.py, adaptive_run_study.py): the run
+costs its engine, driver and protocol work; the rig's temperature is held (its clock follows the servo's)."""
+GRADIENTS_PCT = (0.5, 1.0, 2.0, 4.0, 6.0, 9.0)
+ONE_LEG = {0: 1.0}
+"""One leg: leg 1 reads long (reported stroke = true stroke x (1 + g))."""
+TWO_LEGS = {0: 1.0, 3: -1.0}
+"""Two legs: leg 1 reads long and leg 4 (on another base pair) short, by the same amount."""
+ASSEMBLY_MM = (1.0, 2.0, 3.0, 4.0)
+ASSEMBLY_SEED = 33
+"""Assembly errors: all 42 (da, db per joint coordinate, dl0 per leg) from N(0, s^2), sim_devices.rig.config.
+random_errors(ASSEMBLY_SEED + k, s), k the size's index; the same draws on every robot."""
+ALIGNMENT_MM = (5.0, 10.0, 20.0, 50.0)
+DEAD_LEGS = [4]
+DEAD_KEY = "dead_transducer_legs"
+COLLISION_EVENT = "cmm_sim.collision"
+RUN_TIMEOUT_S = 1800.0
+QUICK = ("*/healthy", "*/gradient-1leg-4pc", "paper/assembly-3mm", "paper/alignment-20mm", "paper/dead-transducer")
+RUN_LINE = re.compile(r"^run \d{8}T\d{6}Z-[0-9a-f]+:? (.+)$", re.MULTILINE)
+RESUME_TAIL = re.compile(r"\s*The journal is kept; continue with: .*$")
+
+
+@dataclass(frozen=True)
+class Case:
+    """One run: the robot's key, the fault's name and label, and the simulator sections it adds to FAST."""
+
+    robot: str
+    name: str
+    kind: str
+    label: str
+    sim: dict[str, Any] = field(default_factory=dict)
+    assembly_sigma_mm: float | None = None
+    assembly_seed: int | None = None
+    needs: str | None = None
+    """A simulator configuration key the case needs; without it the case is reported as not supported yet."""
+
+    @property
+    def id(self) -> str:
+        return f"{self.robot}/{self.name}"
+
+
+def _gains(legs: dict[int, float], pct: float) -> list[float]:
+    ppm = [0.0] * 6
+    for leg, sign in legs.items():
+        ppm[leg] = sign * pct * 1e4
+    return ppm
+
+
+def _pc(value: float) -> str:
+    return f"{value:g}".replace(".", "_") if value != int(value) else f"{int(value)}"
+
+
+def cases(robots: Iterable[str] = tuple(ROBOTS)) -> list[Case]:
+    """Every case, robot by robot, the healthy rig first."""
+    out: list[Case] = []
+    for robot in robots:
+        out.append(Case(robot, "healthy", "healthy", "healthy rig (simulator defaults)"))
+        for legs, tag, said in ((ONE_LEG, "1leg", "leg 1 +{p} %"), (TWO_LEGS, "2legs", "leg 1 +{p} %, leg 4 -{p} %")):
+            for pct in GRADIENTS_PCT:
+                effect = {"sensor_scale": {"enabled": True, "gain_error_ppm": _gains(legs, pct)}}
+                out.append(Case(robot, f"gradient-{tag}-{_pc(pct)}pc", "gradient",
+                                "gradient " + said.format(p=f"{pct:g}"), {"rig": {"effects": effect}}))
+        for k, sigma in enumerate(ASSEMBLY_MM):
+            out.append(Case(robot, f"assembly-{_pc(sigma)}mm", "assembly", f"assembly N(0, {sigma:g} mm)",
+                            assembly_sigma_mm=sigma, assembly_seed=ASSEMBLY_SEED + k))
+        for mm in ALIGNMENT_MM:
+            out.append(Case(robot, f"alignment-{_pc(mm)}mm", "alignment", f"station alignment off {mm:g} mm",
+                            {"cmm": {"alignment_error_mm": mm}}))
+        out.append(Case(robot, "dead-transducer", "dead", f"dead transducer (leg {DEAD_LEGS[0]})",
+                        {"controller": {DEAD_KEY: DEAD_LEGS}}, needs=DEAD_KEY))
+    return out
+
+
+def select(all_cases: list[Case], patterns: Iterable[str]) -> list[Case]:
+    """The cases whose id matches any glob (e.g. ``paper/*``, ``*/gradient-1leg-*``), with each chosen robot's
+    healthy case, which the extra probing time is measured against."""
+    pats = [p.strip() for p in patterns if p.strip()]
+    chosen = {c.id for c in all_cases if any(fnmatch(c.id, p) for p in pats)}
+    chosen |= {f"{c.robot}/healthy" for c in all_cases if c.id in chosen}
+    return [c for c in all_cases if c.id in chosen]
+
+
+def _source_mentions(text: str, under: str = "sim_devices") -> bool:
+    """Whether the simulator's source (read as text, so a half-edited module cannot stop the study) mentions it."""
+    return any(text in p.read_text(errors="replace") for p in (ROOT / under).rglob("*.py"))
+
+
+def collisions_logged() -> bool:
+    """Whether the simulated CMM logs its collisions (the event COLLISION_EVENT in sim.log)."""
+    return _source_mentions(COLLISION_EVENT)
+
+
+def unsupported(case: Case) -> str | None:
+    """Why the simulator cannot run this case yet, or None."""
+    if case.needs and not _source_mentions(case.needs):
+        return f"not supported yet: the simulator has no [controller] {case.needs}"
+    return None
+
+
+def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def sim_toml(case: Case, errors_file: Path | None = None) -> str:
+    """The simulator configuration of a case: its robot, rig seed (and errors), the fault, the fast devices."""
+    from hilcal.protocols.toml_text import toml_lines
+
+    data: dict[str, Any] = {}
+    if ROBOTS[case.robot] is not None:
+        data["robot"] = str(ROBOTS[case.robot])
+    rig: dict[str, Any] = {"seed": RIG_SEED}
+    if errors_file is not None:
+        rig["errors"] = str(errors_file)
+    data = _merge(_merge({**data, "rig": rig}, FAST), case.sim)
+    return "\n".join(toml_lines(data)).strip() + "\n"
+
+
+def write_assembly_errors(case: Case, folder: Path) -> Path:
+    """The case's assembly errors as an errors TOML (sim_devices.rig.config.load_errors reads it)."""
+    from sim_devices.rig.config import errors_toml, random_errors
+
+    assert case.assembly_sigma_mm is not None and case.assembly_seed is not None
+    path = folder / "errors.toml"
+    path.write_text(errors_toml(random_errors(case.assembly_seed, case.assembly_sigma_mm),
+                                f"{case.label}: random_errors({case.assembly_seed}, {case.assembly_sigma_mm})"))
+    return path
+
+
+def command(case: Case, folder: Path) -> list[str]:
+    """The `hilcal run` of a case (its robot both as --robot and in the simulator's configuration)."""
+    robot = ROBOTS[case.robot]
+    return [sys.executable, "-m", "procedures.cli", "run", "--sim", "--yes", "--operator", "study",
+            "--sim-config", str(folder / "sim.toml"), "--out", str(folder / "run"),
+            "--records", str(folder / "records.sqlite"), *(["--robot", str(robot)] if robot else [])]
+
+
+def final_words(output: str) -> str:
+    """What the run said: its final message's first line (`run ID complete`, `run ID stopped: ...`) without the run
+    id and the resume hint; else the last line it printed."""
+    found = RUN_LINE.findall(output)
+    if found:
+        return RESUME_TAIL.sub("", found[0].strip())
+    lines = [line.strip() for line in output.splitlines() if line.strip()]
+    return lines[-1] if lines else ""
+
+
+def _journal(run_dir: Path) -> tuple[str | None, dict[str, int]]:
+    """The journal's run status and its measured rows per phase (read only)."""
+    path = run_dir / "journal.sqlite"
+    if not path.exists():
+        return None, {}
+    db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    try:
+        row = db.execute("SELECT status FROM run").fetchone()
+        rows = dict(db.execute("SELECT phase, COUNT(*) FROM measurements GROUP BY phase").fetchall())
+    except sqlite3.Error:
+        return None, {}
+    finally:
+        db.close()
+    return (row[0] if row else None), rows
+
+
+def count_collisions(run_dir: Path) -> int | None:
+    """COLLISION_EVENT lines in the run's sim.log; None when the simulator does not log collisions."""
+    if not collisions_logged():
+        return None
+    log = run_dir / "sim.log"
+    if not log.exists():
+        return None
+    return sum(COLLISION_EVENT in line for line in log.read_text(errors="replace").splitlines())
+
+
+def summarize(run_dir: Path, code: int | None, output: str) -> dict[str, Any]:
+    """A finished run's figures from its folder: report.json (status, verification after, the physics step's
+    prediction, the measure phase's time), the journal (status and rows when there is no report), sim.log
+    (collisions) and what it printed."""
+    report_path = run_dir / "report.json"
+    report = json.loads(report_path.read_text()) if report_path.exists() else {}
+    status, rows = _journal(run_dir)
+    phases = (report.get("machine_time") or {}).get("phases") or {}
+    measure = phases.get("measure") or {}
+    physics = report.get("physics") or {}
+    verification = report.get("verification") or {}
+    return {
+        "code": code, "status": report.get("status") or status, "report": bool(report), "rows": rows,
+        "said": final_words(output), "collisions": count_collisions(run_dir),
+        "measure_actual_s": measure.get("actual_s"), "measure_estimated_s": measure.get("estimated_s"),
+        "measure_poses_planned": measure.get("n_poses"),
+        "before": verification.get("before"), "after": verification.get("after"),
+        "predicted": physics.get("predicted_with_physics"), "geometry_only": physics.get("predicted_geometry_only"),
+        "effects": physics.get("effects") or [], "block": bool(physics.get("block")),
+        "noise_mm": physics.get("noise_mm"), "warnings": report.get("warnings") or [],
+        "tail": output[-1500:] if code not in (0, 4) else "",
+    }
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    """Stop a run that outlived its time as an operator would (Ctrl-C, then kill), by its process id."""
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def run_case(case: Case, work: Path, timeout_s: float = RUN_TIMEOUT_S) -> dict[str, Any]:
+    """Run one case as `hilcal run --sim --yes` in ``work/<robot>__<name>`` and return its figures.
+
+    The keys: the case (id, robot, name, kind, label), whether it ran (``supported``), the exit code, the
+    ``summarize`` figures, the wall-clock seconds and the command."""
+    head = {"id": case.id, "robot": case.robot, "name": case.name, "kind": case.kind, "label": case.label}
+    why = unsupported(case)
+    if why:
+        return {**head, "supported": False, "code": None, "status": None, "said": why, "seconds": 0.0,
+                "collisions": None, "rows": {}}
+    folder = work / case.id.replace("/", "__")
+    folder.mkdir(parents=True, exist_ok=True)
+    errors = write_assembly_errors(case, folder) if case.assembly_sigma_mm is not None else None
+    (folder / "sim.toml").write_text(sim_toml(case, errors))
+    cmd = command(case, folder)
+    env = {**os.environ, "MPLBACKEND": "Agg", "OPENBLAS_NUM_THREADS": "1", "COLUMNS": "200"}
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    timed_out = False
+    try:
+        output, _ = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        timed_out = True
+        _stop(proc)
+        output, _ = proc.communicate()
+    (folder / "output.txt").write_text(output)
+    result = {**head, "supported": True, **summarize(folder / "run", proc.returncode, output),
+              "seconds": time.perf_counter() - t0, "timed_out": timed_out,
+              "command": "hilcal " + " ".join(cmd[3:]).replace(str(folder), "DIR")}
+    if case.needs and proc.returncode == 2 and case.needs in output and "Extra inputs" in output:
+        result.update(supported=False, said=f"not supported yet: the simulator refuses [controller] {case.needs}")
+    if timed_out:
+        result["said"] = f"timed out after {timeout_s:.0f} s (stopped with Ctrl-C): {result['said']}"
+    return result
