@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from enum import StrEnum
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -42,9 +43,17 @@ class CmmServerConfig(BaseModel):
     seed: int = 0
     noise_sigma_mm: float = Field(default=0.002, ge=0, description="touch-point noise per coordinate")
     time_scale: float = Field(default=1.0, ge=0, description="multiplies every duration; 0 = instant")
-    probe_time_s: float = Field(default=0.5, ge=0, description="one touch, excluding travel")
-    travel_speed_mm_s: float = Field(default=250.0, gt=0)
+    probe_time_s: float = Field(default=0.05, ge=0, description="fixed overhead of one touch (trigger, retract), "
+                                "beyond the positioning travel and the probing stroke")
+    travel_speed_mm_s: float = Field(default=250.0, gt=0, description="positioning moves (GoTo, PtMeas approach)")
+    probing_speed_mm_s: float = Field(default=10.0, gt=0, description="the probing stroke, from the PtMeas start "
+                                      "point to the touch (or the whole 2 x search distance on a miss)")
     home_time_s: float = Field(default=10.0, ge=0)
+    on_collision: Literal["stop", "count"] = Field(
+        default="count", description="a positioning move (GoTo, PtMeas approach) into a tooling sphere: 'stop' as a "
+        "real CMM (error 2504 Collision, latched, the probe stopped at the surface); 'count': only a GoTo target or "
+        "PtMeas start inside a sphere stops it, a path through one is counted and logged and the probe passes "
+        "(for drivers that do not route around the spheres yet)")
     pty: bool = True
     tcp_port: int | None = Field(default=None, ge=0, le=65535, description="None: no TCP; 0: ephemeral port")
     outlier_mm: float = Field(default=0.5, gt=0)

@@ -82,6 +82,17 @@ class CmmServerHandle:
         log.info("cmm_sim.started", path=self.path, tcp_port=self.tcp_port)
 
     @property
+    def collisions(self) -> int:
+        """Crashes of the probe so far (GoTo or PtMeas approaches into a sphere, illegal touches), each logged as
+        ``cmm_sim.collision``."""
+        return self._machine.collisions
+
+    @property
+    def machine_time_s(self) -> float:
+        """The CMM's machine time so far (s, before ``time_scale``): travel, probing strokes, touches, homing."""
+        return self._machine.machine_time_s
+
+    @property
     def socket_url(self) -> str | None:
         """pyserial URL of the TCP endpoint."""
         return None if self.tcp_port is None else f"socket://127.0.0.1:{self.tcp_port}"
@@ -219,7 +230,8 @@ class CmmServerHandle:
             if fd is not None:
                 with contextlib.suppress(OSError):
                     os.close(fd)
-        log.info("cmm_sim.stopped", path=self.path, tcp_port=self.tcp_port)
+        log.info("cmm_sim.stopped", path=self.path, tcp_port=self.tcp_port, collisions=self._machine.collisions,
+                 machine_time_s=round(self._machine.machine_time_s, 3))
 
     def __enter__(self) -> CmmServerHandle:
         return self

@@ -1,11 +1,15 @@
-"""The simulated CMM's machine and protocol session: touch physics, homing, error state, command responses.
+"""The simulated CMM's machine and protocol session: touch physics, collisions, homing, error state, responses.
 
 Physics: the six tooling spheres of the SimulatedRig (platform spheres moving with ``rig.true_pose()``, base
 spheres fixed) expressed in the CMM frame with ``rig.to_cmm``. ``PtMeas(X,Y,Z,IJK)`` moves the probe from
 target + s*IJK along -IJK for up to 2*s (s = search distance) and returns the first surface touched plus
-Gaussian noise; no surface on that path is error 1006 "Surface not found". Durations are real-time
-figures multiplied by ``time_scale`` (0 = instant). ``CmmSession`` is one connection's protocol state,
-transport-free: it answers command lines through a ``send`` callable.
+Gaussian noise; no surface on that path is error 1006 "Surface not found". Every positioning move is a straight
+line from where the probe is (its tip a point): a ``GoTo`` or a PtMeas approach that enters a sphere crashes
+(error 2504 Collision; a PtMeas start point inside a sphere is 1001 Illegal touch), and the probe stops where it
+met the surface. Each crash is counted (``CmmMachine.collisions``) and logged as ``cmm_sim.collision``. Durations
+(travel, the probing stroke at its own speed, a fixed overhead per touch, homing) are real-time figures multiplied
+by ``time_scale`` (0 = instant). ``CmmSession`` is one connection's protocol state, transport-free: it answers
+command lines through a ``send`` callable.
 """
 
 from __future__ import annotations
@@ -43,14 +47,24 @@ from sim_devices.rig.rig import SimulatedRig
 
 log = structlog.get_logger(__name__)
 
+PENETRATION_TOL_MM = 1e-6
+"""A move enters a sphere when it comes closer to its centre than the radius less this (a probe stopped on a
+surface may leave it, or move along it)."""
+
 
 class MotionAborted(Exception):
-    """A motion that failed after its acknowledgement."""
+    """A motion that failed after its acknowledgement, after ``duration_s`` of machine time."""
 
-    def __init__(self, code: ErrorCode, detail: str = "") -> None:
+    def __init__(self, code: ErrorCode, detail: str = "", duration_s: float = 0.0) -> None:
         super().__init__(code.name)
         self.code = code
         self.detail = detail
+        self.duration_s = duration_s
+
+
+def sphere_name(index: int) -> str:
+    """How the log names sphere ``index`` of ``CmmMachine.sphere_centres_mm`` (platform spheres first)."""
+    return f"platform sphere {index + 1}" if index < 3 else f"base sphere {index - 2}"
 
 
 class CmmMachine:
@@ -64,6 +78,10 @@ class CmmMachine:
         self.homed = False
         self.position_mm = np.zeros(3)
         self.latched: ErrorCode | None = None
+        self.collisions = 0
+        """Crashes so far: GoTo or PtMeas approaches into a sphere and illegal touches (each logged)."""
+        self.machine_time_s = 0.0
+        """Every command's duration so far, before ``time_scale``."""
         self._rng = np.random.default_rng([config.seed, 0xC33])
         self._centres: tuple[bytes, np.ndarray] | None = None
 
@@ -83,33 +101,97 @@ class CmmMachine:
     def _travel_s(self, to_mm: np.ndarray) -> float:
         return float(np.linalg.norm(to_mm - self.position_mm)) / self.config.travel_speed_mm_s
 
+    def first_contact(self, start: np.ndarray, end: np.ndarray) -> tuple[int, np.ndarray] | None:
+        """The first sphere the straight move from start to end enters (index, the point where the probe meets its
+        surface), or None when the move stays clear. A start already inside a sphere meets it at once."""
+        centres = self.sphere_centres_mm()
+        r = self.robot.sphere_radius_mm
+        d = end - start
+        m = start - centres
+        a = float(d @ d)
+        if a == 0.0:
+            closest = np.linalg.norm(m, axis=1)
+            entry = np.zeros(len(centres))
+        else:
+            b = m @ d
+            closest = np.linalg.norm(m + np.clip(-b / a, 0.0, 1.0)[:, None] * d, axis=1)
+            c = np.sum(m * m, axis=1) - r * r
+            with np.errstate(invalid="ignore"):
+                entry = np.maximum((-b - np.sqrt(np.maximum(b * b - a * c, 0.0))) / a, 0.0)
+        hit = closest < r - PENETRATION_TOL_MM
+        if not hit.any():
+            return None
+        index = int(np.argmin(np.where(hit, entry, np.inf)))
+        return index, start + min(float(entry[index]), 1.0) * d
+
+    def _collision(self, code: ErrorCode, kind: str, command: str, end: np.ndarray, contact: tuple[int, np.ndarray],
+                   stop: bool, extra_s: float = 0.0) -> MotionAborted:
+        """Count and log a crash; with ``stop`` the probe stops where it met the sphere. The error to raise."""
+        index, point = contact
+        start = self.position_mm.copy()
+        duration = self._travel_s(point) + extra_s
+        if stop:
+            self.position_mm = point
+        self.collisions += 1
+        log.warning("cmm_sim.collision", kind=kind, command=command, code=int(code), stopped=stop, sphere=index,
+                    sphere_name=sphere_name(index), from_mm=np.round(start, 4).tolist(),
+                    to_mm=np.round(end, 4).tolist(), contact_mm=np.round(point, 4).tolist(), collisions=self.collisions)
+        what = {"goto": "GoTo path enters", "approach": "PtMeas approach enters",
+                "illegal_touch": "PtMeas start point inside a sphere; the approach meets"}[kind]
+        depth = self.robot.sphere_radius_mm - np.linalg.norm(start - self.sphere_centres_mm()[index])
+        where = "with the probe already inside it" if depth > PENETRATION_TOL_MM else \
+            f"at ({', '.join(f'{v:.3f}' for v in point)})"
+        return MotionAborted(code, f"{what} {sphere_name(index)} {where}", duration)
+
+    def _inside(self, point: np.ndarray) -> bool:
+        r = self.robot.sphere_radius_mm
+        return bool(np.any(np.linalg.norm(point - self.sphere_centres_mm(), axis=1) < r - PENETRATION_TOL_MM))
+
     def home(self) -> float:
         self.homed = True
         self.position_mm = np.zeros(3)
         return self.config.home_time_s
 
     def goto(self, target: np.ndarray) -> float:
-        r = self.robot.sphere_radius_mm
-        if np.any(np.linalg.norm(self.sphere_centres_mm() - target, axis=1) < r):
-            raise MotionAborted(ErrorCode.COLLISION, "GoTo target inside a sphere")
+        """Move to target; a path into a sphere is a collision (with ``on_collision = "count"`` only a target
+        inside one stops the machine, a path through one is counted and logged)."""
+        contact = self.first_contact(self.position_mm, target)
+        if contact is not None:
+            stop = self.config.on_collision == "stop" or self._inside(target)
+            crash = self._collision(ErrorCode.COLLISION, "goto", "GoTo", target, contact, stop)
+            if stop:
+                raise crash
         duration = self._travel_s(target)
         self.position_mm = target
         return duration
 
     def touch(self, target: np.ndarray, ijk: np.ndarray, search_mm: float, plan: FaultPlan) -> tuple[np.ndarray, float]:
-        """The touched point (noisy) and the duration; MotionAborted on a miss or a start inside a sphere."""
+        """The touched point (noisy) and the duration; MotionAborted on a miss, a start inside a sphere or an
+        approach through one (counted and passed through with ``on_collision = "count"``).
+
+        Duration: the positioning travel to the start, the probed distance (to the touch, or the whole stroke on a
+        miss) at ``probing_speed_mm_s`` and ``probe_time_s``. The probe ends back at the start point.
+        """
         norm = float(np.linalg.norm(ijk))
         if norm == 0:
             raise MotionAborted(ErrorCode.VECTOR_HAS_NO_NORM)
         n = ijk / norm
         start = target + search_mm * n
-        duration = self._travel_s(start) + self.config.probe_time_s
-        self.position_mm = start
+        contact = self.first_contact(self.position_mm, start)
+        if self._inside(start):
+            assert contact is not None
+            raise self._collision(ErrorCode.ILLEGAL_TOUCH, "illegal_touch", "PtMeas", start, contact, True,
+                                  self.config.probe_time_s)
+        if contact is not None:
+            crash = self._collision(ErrorCode.COLLISION, "approach", "PtMeas", start, contact,
+                                    self.config.on_collision == "stop", self.config.probe_time_s)
+            if self.config.on_collision == "stop":
+                raise crash
         centres = self.sphere_centres_mm()
         r = self.robot.sphere_radius_mm
         m = start - centres
-        if np.any(np.linalg.norm(m, axis=1) < r):
-            raise MotionAborted(ErrorCode.ILLEGAL_TOUCH, "probe start inside a sphere")
+        travel_s = self._travel_s(start) + self.config.probe_time_s
+        self.position_mm = start
         b = m @ -n
         c = np.sum(m * m, axis=1) - r * r
         disc = b * b - c
@@ -117,11 +199,12 @@ class CmmMachine:
             s = np.where(disc >= 0, -b - np.sqrt(np.maximum(disc, 0.0)), np.inf)
         s = np.where((s >= 0) & (s <= 2.0 * search_mm), s, np.inf)
         if plan.miss or not np.isfinite(s.min()):
-            raise MotionAborted(ErrorCode.SURFACE_NOT_FOUND, "injected miss" if plan.miss else "")
+            raise MotionAborted(ErrorCode.SURFACE_NOT_FOUND, "injected miss" if plan.miss else "",
+                                travel_s + 2.0 * search_mm / self.config.probing_speed_mm_s)
         point = start - s.min() * n + self._rng.normal(0.0, self.config.noise_sigma_mm, 3)
         if plan.outlier:
             point = point + self.config.outlier_mm * n
-        return point, duration
+        return point, travel_s + float(s.min()) / self.config.probing_speed_mm_s
 
 
 def _fmt(value: float) -> str:
@@ -180,9 +263,11 @@ class CmmSession:
             with self.machine.lock:
                 if abort.code in LATCHING_ERRORS:
                     self.machine.latched = abort.code
-            final, duration = _error_body(abort.code, cmd.call.name, abort.detail), self.machine.config.probe_time_s
+            final, duration = _error_body(abort.code, cmd.call.name, abort.detail), abort.duration_s
         else:
             final = str(Marker.DONE)
+        with self.machine.lock:
+            self.machine.machine_time_s += duration
         delay_s = duration * self.machine.config.time_scale
         if delay_s > 0:
             self.send(ack)
