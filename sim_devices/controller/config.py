@@ -1,5 +1,6 @@
 """What makes one simulated controller: servo speed and tolerances, capabilities (register map 1.1, sensor
-readings), identity, transports and the fault injection active from start-up. Validated (pydantic), frozen."""
+readings), identity, transports, the fault injection active from start-up and a dead transducer with the
+following-error limit that catches it. Validated (pydantic), frozen."""
 
 from __future__ import annotations
 
@@ -84,5 +85,20 @@ class ControllerSimConfig(_Strict):
                                       "can apply a thermal coefficient (needs compensation)")
     temperature_filter_s: float = Field(default=60.0, gt=0, description="time constant of the low-pass filter on "
                                         "the temperature the block uses, simulated s")
+    dead_transducer_legs: list[int] = Field(default_factory=list, description="legs (1-based) whose length "
+                                            "transducer is dead: their reading does not follow the actuator")
+    dead_reading_mm: float | None = Field(default=None, ge=0, le=16_777.215, description="the controller length a "
+                                          "dead transducer reads (before the compensation block), e.g. 0 for a broken "
+                                          "wire; None: it keeps its power-up reading")
+    following_error_mm: float = Field(default=5.0, gt=0, description="the servo's following-error limit: a moving "
+                                      "leg whose reading is this far from where the ramp has driven its actuator "
+                                      "stops the controller (FAULT, FOLLOWING_ERROR)")
+
+    @model_validator(mode="after")
+    def _dead_legs(self) -> ControllerSimConfig:
+        legs = self.dead_transducer_legs
+        if any(not 1 <= leg <= 6 for leg in legs) or len(set(legs)) != len(legs):
+            raise ValueError(f"dead_transducer_legs must be distinct legs 1..6, got {legs}")
+        return self
 
 

@@ -6,7 +6,10 @@ lengths as "reported" = stroke + nominal l0 (robot file), so the servo calls ``r
 and reports s + l0_ctrl. Uploading compensated offsets therefore changes what the controller commands and
 reports while the physics stays in ``rig.py``. With ``repeatability_mm`` each setpoint draws a settle error per leg
 (seeded): the actuator stops that far from where its transducer reads, so the platform scatters from visit to visit
-as a real machine's repeatability does, unseen by the controller. Time is real time multiplied by ``time_scale``
+as a real machine's repeatability does, unseen by the controller. A leg in ``dead_transducer_legs`` reads a
+fixed length whatever its actuator does; the following-error monitor (``following_error_mm``) then stops the
+move with FOLLOWING_ERROR once the servo's ramp has driven that actuator that far from its reading, as a real
+servo controller's does. Time is real time multiplied by ``time_scale``
 and the model advances lazily on every access, so it needs no thread of its own. All public methods are thread-safe.
 
 This module knows no transport: ``can_peer.py`` + ``slcan_server.py`` / ``can_bus_server.py`` adapt it to CAN,
@@ -107,7 +110,11 @@ class SimulatedController:
         self._retargets = 0
         self._settle_rng = np.random.default_rng([self.config.repeatability_seed, 0x5E771E])
         self._settle_error_mm = np.zeros(N_LEGS)
-        self._stroke_mm = rig.reported_lengths() - self._l0_nominal
+        self._dead = np.isin(np.arange(1, N_LEGS + 1), self.config.dead_transducer_legs)
+        self._power_up_stroke_mm = self._actuator_stroke()
+        self._slip_mm = np.zeros(N_LEGS)
+        self._stroke_mm = np.zeros(N_LEGS)
+        self._rebase()
         self._target_mm = self._stroke_mm.copy()
         self._settled_s = 0.0
         self._setpoint_tag = 0
@@ -199,9 +206,50 @@ class SimulatedController:
             self._target_mm = target
             self._settled_s = 0.0
 
-    def _measured_stroke(self) -> np.ndarray:
-        """The transducers' reading: the actuators' position less the settle error they do not see."""
+    def _actuator_stroke(self) -> np.ndarray:
+        """Where the actuators are, as a sound transducer reads them: less the settle error it does not see."""
         return self._rig.reported_lengths() - self._l0_nominal - self._settle_error_mm
+
+    def _reading(self, actuator_stroke_mm: np.ndarray) -> np.ndarray:
+        """What the transducers read with the actuators at these strokes: the strokes, but a dead one's fixed value."""
+        stroke = np.array(actuator_stroke_mm, dtype=float)
+        if self._dead.any():
+            dead_mm = self.config.dead_reading_mm
+            fixed = self._power_up_stroke_mm if dead_mm is None else dead_mm - self._l0_ctrl()
+            stroke[self._dead] = fixed[self._dead]
+        return stroke
+
+    def _measured_stroke(self) -> np.ndarray:
+        """The transducers' reading now."""
+        return self._reading(self._actuator_stroke())
+
+    def _rebase(self) -> None:
+        """Start the servo's ramp from the readings (as a servo does); a leg whose reading is not where its actuator
+        is keeps the difference as slip, so the actuator does not jump."""
+        measured = self._measured_stroke()
+        self._slip_mm = self._actuator_stroke() - measured
+        self._stroke_mm = measured
+
+    def _move_actuators(self) -> None:
+        self._rig.move_to_lengths(np.clip(self._stroke_mm + self._slip_mm + self._settle_error_mm + self._l0_nominal,
+                                          *self.robot.leg_limits))
+
+    def _following_error_s(self, error: np.ndarray, dt_s: float) -> tuple[float, list[int]] | None:
+        """When within the next dt_s the ramp first takes a leg more than ``following_error_mm`` from its reading
+        (s from now) and the legs (1-based) it does that to; None if it does not. Only a leg whose reading does not
+        follow its actuator can get there: a sound one reads the ramp less a settle error below 1 mm."""
+        limit, speed = self.config.following_error_mm, self.config.leg_speed_mm_s
+        step = speed * dt_s
+        ramp = self._stroke_mm + np.clip(error, -step, step)
+        reading = self._reading(ramp + self._slip_mm)  # the actuators follow the ramp
+        over = np.abs(ramp - reading) > limit
+        if not over.any():
+            return None
+        now = self._stroke_mm - reading  # a reading that did not follow stood still
+        # Within the limit now, the ramp leaves it through reading + sign(error) * limit (it moves one way only).
+        t = np.where(over, np.where(np.abs(now) > limit, 0.0, (limit - np.sign(error) * now) / speed), np.inf)
+        first = float(np.min(t))
+        return min(max(first, 0.0), dt_s), [int(i) + 1 for i in np.flatnonzero(t <= first + 1e-12)]
 
     def _update(self) -> None:
         now = self._clock()
@@ -210,14 +258,19 @@ class SimulatedController:
         if self._state not in (ControllerState.MOVING, ControllerState.IN_POSITION) or dt_s == 0.0:
             return
         error = self._target_mm - self._stroke_mm
-        step = self.config.leg_speed_mm_s * dt_s
+        trip = self._following_error_s(error, dt_s)
+        step = self.config.leg_speed_mm_s * (dt_s if trip is None else trip[0])
         arrive_s = float(np.max(np.abs(error))) / self.config.leg_speed_mm_s
-        stroke = np.clip(self._stroke_mm + np.clip(error, -step, step), self._stroke_min_mm, self._stroke_max_mm)
+        # The actuator (ramp + slip) stays within the stroke.
+        stroke = np.clip(self._stroke_mm + np.clip(error, -step, step), self._stroke_min_mm - self._slip_mm,
+                         self._stroke_max_mm - self._slip_mm)
         if not np.array_equal(stroke, self._stroke_mm):
             # Legs that did not move leave the rig alone: it keeps its solved pose instead of solving it again.
             self._stroke_mm = stroke
-            self._rig.move_to_lengths(np.clip(self._stroke_mm + self._settle_error_mm + self._l0_nominal,
-                                          *self.robot.leg_limits))
+            self._move_actuators()
+        if trip is not None:
+            self._following_error(trip[1])
+            return
         if self._state is ControllerState.MOVING:
             self._retarget()
         if all(self._in_position()):
@@ -234,9 +287,16 @@ class SimulatedController:
 
     def _hold(self) -> None:
         """Stop motion where the legs are now."""
-        self._stroke_mm = self._measured_stroke()
+        self._rebase()
         self._target_mm = self._stroke_mm.copy()
         self._settled_s = 0.0
+
+    def _following_error(self, legs: list[int]) -> None:
+        """The ramp is more than ``following_error_mm`` from these legs' readings: FAULT, hold where the legs are."""
+        reading = self._measured_stroke()
+        log.warning("controller_following_error", legs=legs, reading_mm=self._reported(reading).round(3).tolist(),
+                    ramp_minus_reading_mm=(self._stroke_mm - reading).round(3).tolist())
+        self._enter_stop_state(ControllerState.FAULT, FaultCode.FOLLOWING_ERROR)
 
     def _enter_stop_state(self, state: ControllerState, fault: FaultCode) -> None:
         self._hold()
@@ -321,11 +381,10 @@ class SimulatedController:
                 return RefusalReason.SETPOINT_OUT_OF_LIMITS
             self._setpoint_mm = target
             self._retargets = 0
-            self._stroke_mm = self._measured_stroke()
+            self._rebase()
             if self.config.repeatability_mm > 0:
                 self._settle_error_mm = self._settle_rng.normal(0.0, self.config.repeatability_mm, N_LEGS)
-                self._rig.move_to_lengths(np.clip(self._stroke_mm + self._settle_error_mm + self._l0_nominal,
-                                                  *self.robot.leg_limits))
+                self._move_actuators()
             self._target_mm = stroke
             self._settled_s = 0.0
             self._setpoint_tag = tag
