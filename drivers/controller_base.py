@@ -17,6 +17,8 @@ from hilcal.protocols.controller_states import ControllerState, FaultCode, Refus
 from hilcal.robot import Robot
 
 N_LEGS = 6
+FOLLOWED_MM = 0.01
+"""A leg's reading that changes by less than this during a move that asks more of it did not follow the leg."""
 
 
 class ControllerError(Exception):
@@ -28,12 +30,14 @@ class ControllerLost(ControllerError):
 
 
 class ControllerFault(ControllerError):
-    """The controller is in FAULT (or ESTOP, see EStopActive); motion stopped, FAULT_RESET needed."""
+    """The controller is in FAULT (or ESTOP, see EStopActive); motion stopped, FAULT_RESET needed. ``legs``: the
+    legs (1-based) whose reading did not follow during the move, when the driver could tell."""
 
-    def __init__(self, message: str, state: ControllerState, fault: FaultCode) -> None:
+    def __init__(self, message: str, state: ControllerState, fault: FaultCode, legs: Sequence[int] = ()) -> None:
         super().__init__(message)
         self.state = state
         self.fault = fault
+        self.legs = tuple(legs)
 
 
 class EStopActive(ControllerFault):
@@ -96,6 +100,42 @@ def check_leg_limits(robot: Robot, lengths_mm: Sequence[float] | np.ndarray) -> 
     if bad:
         raise LimitViolation(f"setpoint outside the leg limits [{lo}, {hi}] mm: {', '.join(bad)}; nothing sent")
     return lengths
+
+
+def legs_not_following(before_mm: np.ndarray, lowest_mm: np.ndarray, highest_mm: np.ndarray,
+                       target_mm: np.ndarray) -> list[int]:
+    """Legs (1-based) whose reading stayed within FOLLOWED_MM (lowest to highest seen, the reading before the move
+    included) although the setpoint was further away, while the reading of another leg asked to move did move."""
+    lo = np.minimum(lowest_mm, before_mm)
+    hi = np.maximum(highest_mm, before_mm)
+    asked = np.abs(np.asarray(target_mm) - before_mm) > FOLLOWED_MM
+    still = asked & (hi - lo < FOLLOWED_MM)
+    if not (asked & ~still).any():
+        return []
+    return [int(i) + 1 for i in np.flatnonzero(still)]
+
+
+def not_following_text(legs: Sequence[int], reading_mm: np.ndarray, target_mm: np.ndarray,
+                       leg_limits_mm: tuple[float, float]) -> str:
+    """What the driver saw of legs whose reading did not follow, in words (see ``legs_not_following``)."""
+    lo, hi = leg_limits_mm
+
+    def values(arr: np.ndarray) -> str:
+        return " and ".join(", ".join(f"{arr[k - 1]:.3f}" for k in legs).rsplit(", ", 1)) + " mm"
+
+    def names(ks: Sequence[int]) -> str:
+        return " and ".join(", ".join(str(k) for k in ks).rsplit(", ", 1))
+
+    outside = [k for k in legs if not lo <= reading_mm[k - 1] <= hi]
+    beyond = "" if not outside else f", outside the leg limits [{lo:g}, {hi:g}] mm," if outside == list(legs) else \
+        f" (leg{'s' if len(outside) > 1 else ''} {names(outside)} outside the leg limits [{lo:g}, {hi:g}] mm)"
+    if len(legs) == 1:
+        return (f"leg {names(legs)} read {values(reading_mm)} throughout{beyond} while its setpoint was "
+                f"{values(target_mm)} (the other legs followed): its transducer does not follow the leg "
+                "(dead or disconnected)")
+    return (f"legs {names(legs)} read {values(reading_mm)} throughout{beyond} while their setpoints were "
+            f"{values(target_mm)} (the other legs followed): their transducers do not follow the legs "
+            "(dead or disconnected)")
 
 
 class ControllerInterface(ABC):

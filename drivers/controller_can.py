@@ -38,6 +38,8 @@ from drivers.controller_base import (
     MotionTimeout,
     PositionMismatch,
     check_leg_limits,
+    legs_not_following,
+    not_following_text,
 )
 from drivers.slcan_bus import open_bus
 from hilcal.protocols.checksums import CAN_COUNTER_MODULO
@@ -447,6 +449,7 @@ class ControllerCan(ControllerInterface):
             raise FrameError(f"lengths {target.tolist()} mm do not fit the 24-bit um encoding")
         with self._command_lock:
             self._refuse_locally(Command.SETPOINT)
+            before = None if self._snapshot is None else self._snapshot.lengths_mm.copy()
             counter = self._next_counter("Setpoint")
             sent_s = time.monotonic()
             self._send_frames([(name, {f"Leg{2 * k + 1}Setpoint": um[2 * k], f"Leg{2 * k + 2}Setpoint": um[2 * k + 1]})
@@ -455,7 +458,7 @@ class ControllerCan(ControllerInterface):
         if reason is not RefusalReason.ACCEPTED:
             raise CommandRefused(f"controller refused the setpoint in state {state.name}: {reason.name}",
                                  reason, state, "controller")
-        snap = self._wait_in_position(counter, acked_s, time.monotonic() + timeout_s, timeout_s)
+        snap = self._wait_in_position(counter, acked_s, time.monotonic() + timeout_s, timeout_s, before, target)
         error = np.abs(snap.lengths_mm - target)
         if float(error.max()) > self.position_tolerance_mm:
             raise PositionMismatch(
@@ -464,17 +467,32 @@ class ControllerCan(ControllerInterface):
             )
         return snap.lengths_mm.copy()
 
-    def _wait_in_position(self, counter: int, acked_s: float, deadline: float, timeout_s: float) -> _Snapshot:
+    def _wait_in_position(self, counter: int, acked_s: float, deadline: float, timeout_s: float,
+                          before: np.ndarray | None, target: np.ndarray) -> _Snapshot:
+        """Wait for IN_POSITION of this setpoint. A fault or a timeout names the legs whose reading did not follow
+        (``legs_not_following``, over the readings before the move and every snapshot seen during it)."""
+        lowest = highest = before
+
+        def stuck(snap: _Snapshot) -> tuple[list[int], str]:
+            if before is None or lowest is None or highest is None:
+                return [], ""
+            legs = legs_not_following(before, lowest, highest, target)
+            return legs, (f": {not_following_text(legs, snap.lengths_mm, target, self.robot.leg_limits)}"
+                          if legs else "")
+
         with self._cond:
             while True:
                 self._require_alive()
                 snap = self._snapshot
                 if snap is not None and snap.received_s > acked_s:
+                    if lowest is not None and highest is not None:
+                        lowest, highest = np.minimum(lowest, snap.lengths_mm), np.maximum(highest, snap.lengths_mm)
                     if snap.state is ControllerState.ESTOP:
                         raise EStopActive(f"e-stop during the move ({snap.fault.name})", snap.state, snap.fault)
                     if snap.state is ControllerState.FAULT:
-                        raise ControllerFault(f"controller fault during the move: {snap.fault.name}",
-                                              snap.state, snap.fault)
+                        legs, text = stuck(snap)
+                        raise ControllerFault(f"controller fault {snap.fault.name} during the move{text}",
+                                              snap.state, snap.fault, legs)
                     ours = snap.setpoint_valid and snap.setpoint_counter == counter
                     if snap.state is ControllerState.IN_POSITION and ours:
                         return snap
@@ -488,7 +506,8 @@ class ControllerCan(ControllerInterface):
             self.stop()
         except Exception as err:
             log.warning("stop_after_timeout_failed", error=str(err))
-        raise MotionTimeout(f"legs not in position within {timeout_s} s; STOP sent")
+        text = stuck(snap)[1] if snap is not None else ""
+        raise MotionTimeout(f"legs not in position within {timeout_s} s; STOP sent{text}")
 
     def close(self) -> None:
         """Stop the reader thread and shut the bus down (the controller state is left as it is)."""
