@@ -14,6 +14,9 @@ Example configuration (every key optional; relative paths are relative to the fi
 
     [controller]                    # ControllerSimConfig; time_scale defaults to 100 here
     time_scale = 100.0
+    following_error_mm = 5.0        # a moving leg whose reading is this far from its ramp: FAULT FOLLOWING_ERROR
+    dead_transducer_legs = [4]      # a fault to find: legs whose transducer is dead (default: none)
+    dead_reading_mm = 0.0           # what a dead one reads (controller length; default: its power-up reading)
     [controller.can_faults]
     drop_rate = 0.001
 
@@ -22,6 +25,8 @@ Example configuration (every key optional; relative paths are relative to the fi
     stated_uncertainty_mm = 0.004   # U (k = 2) per sphere-centre coordinate it states (default 2 x noise_sigma_mm)
     alignment_error_mm = 2.0        # error of the published T_cmm<-base (a station's rough CMM set-up)
     alignment_error_deg = 0.02
+    on_collision = "stop"           # a GoTo or approach through a sphere crashes (default "count": logged, passes)
+    probing_speed_mm_s = 10.0       # the probing stroke; probe_time_s (0.05) per touch, travel_speed_mm_s (250)
     [cmm.faults]
     garbage = 0.01
 """
