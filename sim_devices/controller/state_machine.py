@@ -7,10 +7,11 @@ and reports s + l0_ctrl. Uploading compensated offsets therefore changes what th
 reports while the physics stays in ``rig.py``. With ``repeatability_mm`` each setpoint draws a settle error per leg
 (seeded): the actuator stops that far from where its transducer reads, so the platform scatters from visit to visit
 as a real machine's repeatability does, unseen by the controller. A leg in ``dead_transducer_legs`` reads a
-fixed length whatever its actuator does; the following-error monitor (``following_error_mm``) then stops the
-move with FOLLOWING_ERROR once the servo's ramp has driven that actuator that far from its reading, as a real
-servo controller's does. Time is real time multiplied by ``time_scale``
-and the model advances lazily on every access, so it needs no thread of its own. All public methods are thread-safe.
+fixed length whatever its actuator does; the servo drives it on past its target while its reading lags, and the
+following-error monitor (``following_error_mm``) stops the move with FOLLOWING_ERROR once the ramp has driven
+that actuator that far from its reading, as a real servo controller's does. Time is real time multiplied by
+``time_scale`` and the model advances lazily on every access, so it needs no thread of its own. All public methods
+are thread-safe.
 
 This module knows no transport: ``can_peer.py`` + ``slcan_server.py`` / ``can_bus_server.py`` adapt it to CAN,
 ``modbus_protocol.py`` + ``modbus_server.py`` to Modbus, and ``controller_servers.py`` composes them.
@@ -258,6 +259,11 @@ class SimulatedController:
         if self._state not in (ControllerState.MOVING, ControllerState.IN_POSITION) or dt_s == 0.0:
             return
         error = self._target_mm - self._stroke_mm
+        # A leg that will not read its target when its ramp gets there is driven on past it (the loop integrates its
+        # error): a sound leg reads its ramp, a dead one runs on to the following-error limit.
+        short = self._target_mm - self._reading(self._target_mm + self._slip_mm)
+        driven_on = np.abs(short) > self.config.in_position_tolerance_mm
+        error = np.where(driven_on, np.sign(short) * (self.config.leg_speed_mm_s * dt_s + 1.0), error)
         trip = self._following_error_s(error, dt_s)
         step = self.config.leg_speed_mm_s * (dt_s if trip is None else trip[0])
         arrive_s = float(np.max(np.abs(error))) / self.config.leg_speed_mm_s

@@ -76,11 +76,22 @@ def test_broken_wires_are_named_with_their_reading_outside_the_leg_limits(connec
             f"their setpoints were {setpoint[1]:.3f} and {setpoint[4]:.3f} mm") in str(info.value)
 
 
-def test_a_small_move_of_a_dead_leg_times_out_naming_it(connect) -> None:
-    _, driver = connect(time_scale=50.0, dead_transducer_legs=[1])
+def test_a_small_move_of_a_dead_leg_trips_too(connect) -> None:
+    _, driver = connect(time_scale=200.0, dead_transducer_legs=[1])
+    before = driver.feedback().lengths_mm
+    with pytest.raises(ControllerFault) as info:
+        driver.move_legs(before + 2.0, timeout_s=5.0)  # 2 mm: less than the limit; the servo drives leg 1 on
+    assert info.value.fault is FaultCode.FOLLOWING_ERROR and info.value.legs == (1,)
+    assert f"leg 1 read {before[0]:.3f} mm throughout while its setpoint was {before[0] + 2.0:.3f} mm" in str(
+        info.value)
+
+
+def test_a_move_that_times_out_names_the_leg_that_did_not_follow(connect) -> None:
+    # A 100 mm limit at 50 mm/s: 2 s before the monitor trips, the driver gives up after 0.5 s.
+    _, driver = connect(time_scale=1.0, leg_speed_mm_s=50.0, dead_transducer_legs=[1], following_error_mm=100.0)
     before = driver.feedback().lengths_mm
     with pytest.raises(MotionTimeout) as info:
-        driver.move_legs(before + 2.0, timeout_s=0.5)  # 2 mm: below the limit, the monitor does not trip
+        driver.move_legs(before + 2.0, timeout_s=0.5)
     assert str(info.value).endswith(
         f"STOP sent: leg 1 read {before[0]:.3f} mm throughout while its setpoint was {before[0] + 2.0:.3f} mm (the "
         "other legs followed): its transducer does not follow the leg (dead or disconnected)")

@@ -80,14 +80,23 @@ def test_a_broken_wire_reads_its_fixed_length_and_the_servo_drives_the_leg_the_w
     np.testing.assert_array_equal(snap.lengths_mm[[1, 4]], 0.0)
 
 
-def test_a_dead_leg_asked_less_than_the_limit_never_gets_in_position(robot: Robot) -> None:
-    ctl, _, clock = make(robot, dead_transducer_legs=[1])
+def test_a_dead_leg_asked_less_than_the_limit_is_driven_on_until_it_trips(robot: Robot) -> None:
+    """Its ramp arrives 3 mm out, its reading does not: the servo drives it on, as an integrating loop does, until
+    the ramp is 5 mm from the reading. The sound legs stop at their 3 mm."""
+    ctl, rig, clock = make(robot, dead_transducer_legs=[1])
     start = ctl.snapshot().lengths_mm
+    physical0 = rig.reported_lengths()
     assert ctl.set_setpoint(start + 3.0).name == "ACCEPTED"
+    clock.t += 0.08  # 4 mm of drive at 50 mm/s: leg 1 is 1 mm past its setpoint, not yet at the limit
+    assert ctl.snapshot().state is S.MOVING
+    np.testing.assert_allclose(rig.reported_lengths()[0] - physical0[0], 4.0, atol=RESOLUTION_MM)
     clock.t += 2.0
     snap = ctl.snapshot()
-    assert (snap.state, snap.fault) == (S.MOVING, FaultCode.NONE)
-    assert snap.in_position == (False, True, True, True, True, True)
+    assert (snap.state, snap.fault) == (S.FAULT, FaultCode.FOLLOWING_ERROR)
+    moved = rig.reported_lengths() - physical0
+    np.testing.assert_allclose(moved, [5.0, 3.0, 3.0, 3.0, 3.0, 3.0], atol=RESOLUTION_MM)
+    np.testing.assert_allclose(snap.lengths_mm[1:] - start[1:], 3.0, atol=RESOLUTION_MM)
+    assert snap.lengths_mm[0] == start[0]
 
 
 @pytest.mark.parametrize("limit_mm", [5.0, 0.05])
