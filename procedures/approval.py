@@ -83,8 +83,9 @@ def _brief(b: dict[str, float]) -> str:
     return f"max {b['max_position_mm']:.4f} mm, RMS {b['rms_position_mm']:.4f} mm"
 
 
-def approval_lines(detail: dict[str, Any]) -> list[str]:
-    """The approval as plain text (the terminal's view): findings, predictions, block, then the parameter diff."""
+def approval_lines(detail: dict[str, Any], diff_first: bool = False) -> list[str]:
+    """The approval as plain text (the terminal's view): findings, predictions, block, then the parameter diff
+    (diff_first: the diff first, so that the findings stay on the screen just above the question that follows)."""
     physics = detail.get("physics")
     lines = [f"  - {line}" for line in physics_lines(physics)]
     if physics and physics.get("enabled", True):
@@ -105,9 +106,10 @@ def approval_lines(detail: dict[str, Any]) -> list[str]:
     if block:
         lines.append("compensation block: " + block_summary(block))
     lines += [f"out of reach: {sentence}" for sentence in detail.get("out_of_reach") or []]
-    lines.append(f"{'parameter':<14} {'live (mm)':>12} {'new (mm)':>12} {'change (mm)':>12}")
-    lines += [f"{d['name']:<14} {d['live_mm']:12.4f} {d['new_mm']:12.4f} {d['delta_mm']:+12.4f}"
-              for d in detail.get("diff", [])]
+    diff = [f"{'parameter':<14} {'live (mm)':>12} {'new (mm)':>12} {'change (mm)':>12}"]
+    diff += [f"{d['name']:<14} {d['live_mm']:12.4f} {d['new_mm']:12.4f} {d['delta_mm']:+12.4f}"
+             for d in detail.get("diff", [])]
+    lines = diff + lines if diff_first else lines + diff
     lines.append(f"upload sha256 {detail.get('new_sha256', '')[:16]}")
     return lines
 

@@ -9,10 +9,12 @@ way to resume. An optional observer (the operator panel) is told of every messag
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import time
 from collections.abc import Callable, Generator
+from contextlib import AbstractContextManager
 from typing import Any
 
 import numpy as np
@@ -64,10 +66,14 @@ class Engine:
     def __init__(self, devices: Any, journal: Journal, *, confirm: Callable[[str], bool] | None = None,
                  on_measure: Callable[[dict], None] | None = None, move_timeout_s: float = 120.0,
                  observer: EngineObserver | None = None, links: LinksSection | None = None,
-                 approach_mm: float = 0.5, on_prompt: Callable[[m.Prompt], None] | None = None) -> None:
+                 approach_mm: float = 0.5, on_prompt: Callable[[m.Prompt], None] | None = None,
+                 asking: Callable[[], AbstractContextManager[Any]] | None = None) -> None:
         self.devices = devices
         self.on_prompt = on_prompt
         """Called with a prompt before `confirm` asks it (a terminal prints the prompt's detail)."""
+        self.asking = asking or contextlib.nullcontext
+        """Entered while the operator reads a question (its detail included) and answers it: the terminal's live
+        progress steps aside, so that nothing draws over the question."""
         self.move_timeout_s = move_timeout_s
         self.journal = journal
         self.confirm = confirm
@@ -133,7 +139,8 @@ class Engine:
 
     def _ask_continue(self) -> bool:
         try:
-            return bool(self.confirm("Paused: motion stopped. Continue the run?"))
+            with self.asking():
+                return bool(self.confirm("Paused: motion stopped. Continue the run?"))
         except (KeyboardInterrupt, EOFError):
             return False
 
@@ -153,9 +160,12 @@ class Engine:
         return handler(msg)
 
     def _on_prompt(self, msg: m.Prompt) -> bool:
-        if self.confirm is not None and self.on_prompt is not None:
-            self.on_prompt(msg)
-        answer = True if self.confirm is None else self.confirm(msg.text)
+        answer = True
+        if self.confirm is not None:
+            with self.asking():
+                if self.on_prompt is not None:
+                    self.on_prompt(msg)
+                answer = self.confirm(msg.text)
         self.journal.event("prompt", key=msg.key, text=msg.text, answer=answer, unattended=self.confirm is None)
         if not answer:
             raise RunInterrupted(f"operator declined: {msg.text}")

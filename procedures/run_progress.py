@@ -3,6 +3,10 @@
 The bar counts measured poses; an adaptive run does not know its count in advance, so each decision (the
 ``procedures.adaptive.progress`` checkpoint) prints its prediction and forecast above the bar and sets the bar's total
 to the rows so far plus those forecast plus the verify phases'.
+
+The bar is a live display: it redraws its line several times a second, over whatever was written on it. While the
+operator reads and answers a question (a prompt with its detail, the pause), the engine holds `bar_aside`: the bar
+leaves the screen and comes back below the answer.
 """
 
 from __future__ import annotations
@@ -30,6 +34,27 @@ def terminal_progress(total: int, done: int) -> Iterator[tuple[Callable[[dict], 
             progress.update(task, advance=1, description=f"{row['phase']} pose {row['index'] + 1}")
 
         yield advance, progress, task
+
+
+@contextlib.contextmanager
+def bar_aside(bar: Progress) -> Iterator[None]:
+    """The bar off the terminal's screen while the operator reads and answers a question, then back below the answer.
+
+    Its line is erased rather than left frozen above the question; without a terminal (output to a file or a pipe)
+    nothing is drawn live and nothing changes.
+    """
+    live = bar.live
+    if not live.is_started or not bar.console.is_terminal:
+        yield
+        return
+    transient = live.transient
+    live.transient = True  # stopping erases the bar's line
+    live.stop()
+    try:
+        yield
+    finally:
+        live.transient = transient
+        live.start(refresh=True)
 
 
 def combine_observers(*observers: Observer | None) -> Observer | None:

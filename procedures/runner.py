@@ -64,7 +64,7 @@ from procedures.engine import Engine, RunInterrupted
 from procedures.journal import Journal
 from procedures.link_guard import links_summary
 from procedures.plan import CalibrationPlan, PlanError, estimate_plan, load_plan, make_plan, save_plan
-from procedures.run_progress import adaptive_lines, combine_observers, terminal_progress
+from procedures.run_progress import adaptive_lines, bar_aside, combine_observers, terminal_progress
 from procedures.timing import TimingSection
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NOT_ACCEPTED = 0, 2, 3, 4
@@ -144,7 +144,8 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
             engine = Engine(devices, journal, confirm=confirm, on_measure=advance,
                             move_timeout_s=devices.station.motion.move_timeout_s,
                             observer=combine_observers(observer, shown),
-                            links=devices.station.links, approach_mm=plan.approach_mm, on_prompt=on_prompt)
+                            links=devices.station.links, approach_mm=plan.approach_mm, on_prompt=on_prompt,
+                            asking=lambda: bar_aside(bar))
             result: ProcedureResult = engine.run(calibration_procedure(plan, robot, options))
     except RunInterrupted as e:
         journal.set_status("interrupted")

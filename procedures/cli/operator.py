@@ -104,11 +104,12 @@ def run(
 
 
 def _print_prompt_detail(prompt) -> None:
-    """Before the terminal asks to approve the upload: the findings, predictions, block and parameter diff."""
+    """Before the terminal asks to approve the upload: the parameter diff, then the findings, predictions and block
+    (the progress bar is off the screen meanwhile: ``procedures.run_progress.bar_aside``)."""
     if prompt.key == "upload" and prompt.detail:
         from procedures.approval import approval_lines
 
-        for line in approval_lines(prompt.detail):
+        for line in approval_lines(prompt.detail, diff_first=True):
             out.print(line, highlight=False, markup=False, soft_wrap=True)
 
 
