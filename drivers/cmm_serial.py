@@ -64,7 +64,7 @@ MAX_DISCARD_BYTES = 65536
 
 
 class SerialCmmConfig(BaseModel):
-    """Transport settings: timeouts per phase, retries, and the PtMeas search distance set at session start."""
+    """Transport settings: timeouts per phase, retries, and where Home leaves the probe."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
@@ -76,7 +76,8 @@ class SerialCmmConfig(BaseModel):
     max_skipped_lines: int = Field(default=32, ge=0, description="garbage/stale lines tolerated per transaction")
     poll_s: float = Field(default=0.02, gt=0, description="read granularity of the port")
     write_timeout_s: float = Field(default=2.0, gt=0)
-    search_distance_mm: float = Field(default=5.0, gt=0, le=MAX_SEARCH_DISTANCE_MM)
+    home_mm: tuple[float, float, float] = Field(default=(0.0, 0.0, 0.0), description="where Home leaves the probe, "
+                                                "CMM frame (the first move starts there)")
 
 
 # ---------------------------------------------------------------------- response parsing (driver side)
@@ -418,15 +419,20 @@ class SerialCmm(CmmInterface):
 
     # ------------------------------------------------------------------ commands
 
-    def start_session(self) -> None:
+    def _start_session(self) -> None:
         self.transact(f"{Command.START_SESSION}()")
-        self.transact(f"{Command.SET_PROP}({SEARCH_PROPERTY}({_num(self.config.search_distance_mm)}))")
+
+    def _set_search_distance(self, mm: float) -> None:
+        if not 0 < mm <= MAX_SEARCH_DISTANCE_MM:
+            raise ValueError(f"search distance must be in (0, {MAX_SEARCH_DISTANCE_MM}] mm, got {mm}")
+        self.transact(f"{Command.SET_PROP}({SEARCH_PROPERTY}({_num(mm)}))")
 
     def end_session(self) -> None:
         self.transact(f"{Command.END_SESSION}()")
 
-    def home(self) -> None:
+    def _home(self) -> np.ndarray:
         self.transact(f"{Command.HOME}()", self.config.home_timeout_s)
+        return np.array(self.config.home_mm, dtype=float)
 
     def clear_errors(self) -> None:
         self.transact(f"{Command.CLEAR_ALL_ERRORS}()")
@@ -440,11 +446,11 @@ class SerialCmm(CmmInterface):
                     return it.args[1]
         raise CmmProtocolError(f"GetErrorInfo({code}) returned no ErrorInfo(code, text): {data}")
 
-    def goto(self, point_mm: np.ndarray) -> None:
+    def _goto(self, point_mm: np.ndarray) -> None:
         p = _finite3(point_mm, "point_mm")
         self.transact(f"{Command.GO_TO}(X({_num(p[0])}), Y({_num(p[1])}), Z({_num(p[2])}))")
 
-    def probe(self, point_mm: np.ndarray, ijk: np.ndarray) -> np.ndarray:
+    def _probe(self, point_mm: np.ndarray, ijk: np.ndarray) -> np.ndarray:
         p = _finite3(point_mm, "point_mm")
         n = _finite3(ijk, "ijk")
         norm = np.linalg.norm(n)

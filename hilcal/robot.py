@@ -131,6 +131,17 @@ class ActuatorSpec(_Strict):
         "motor_encoder for electric ones")
 
 
+class ToleranceSpec(_Strict):
+    """How far the machine as built may be from this file before anything is measured (standard deviations): the
+    run's acquisition predicts the first poses from these, and refits them as poses are measured."""
+
+    joint_mm: float = Field(default=2.0, gt=0, description="joint centre positions, per coordinate")
+    leg_offset_mm: float = Field(default=3.0, gt=0, description="leg lengths at zero stroke (leg offsets)")
+    reading_scale_pct: float = Field(default=2.0, gt=0, le=50, description="the gradient of each leg's reading")
+    misfit_mm: float = Field(default=0.02, gt=0, description="least leg-length misfit of a rigid model: resolution, "
+                             "the physics it leaves out")
+
+
 class RobotSpec(_Strict):
     """The whole robot file."""
 
@@ -142,6 +153,7 @@ class RobotSpec(_Strict):
     mass: MassSpec
     cmm: CmmSpec
     actuators: ActuatorSpec | None = Field(default=None, description="the legs' kind; None: unknown")
+    tolerances: ToleranceSpec = Field(default_factory=ToleranceSpec)
 
     @model_validator(mode="after")
     def _consistent(self) -> RobotSpec:
@@ -267,6 +279,11 @@ class Robot:
         if act is None:
             return None
         return act.transducer or DEFAULT_TRANSDUCER[act.kind]
+
+    @property
+    def tolerances(self) -> ToleranceSpec:
+        """The machine's tolerances before it is measured (``[tolerances]``, defaults when the file has none)."""
+        return self.spec.tolerances
 
     @property
     def characteristic_length_mm(self) -> float:

@@ -29,6 +29,7 @@ from hilcal.recording import Recording, recording_from_arrays
 from hilcal.robot import Robot
 from procedures import messages as m
 from procedures.acceptance import ACCEPTANCE_PHASE, AcceptanceTest
+from procedures.acquisition import AFTER_UPLOAD_TIGHTENING, Acquisition
 from procedures.adaptive import PROGRESS_LABEL, STOP_LABEL, AdaptiveRun, check_route_on, progress
 from procedures.approval import approval_detail, workspace_samples
 from procedures.physics import ControllerInfo, PhysicsDecision, decide
@@ -66,6 +67,8 @@ class ProcedureResult:
     upload: dict | None = None
     after_rows: list[dict] = field(default_factory=list)
     out_of_reach: list[str] = field(default_factory=list)
+    acquisition: list[str] = field(default_factory=list)
+    """What the measurement met: gross set-up faults measured as they are, poses skipped as out of reach."""
     acceptance_rows: list[dict] = field(default_factory=list)
     physics: PhysicsDecision | None = None
     block: CompensationBlock | None = None
@@ -133,16 +136,30 @@ def identification_summary(result: ProcedureResult, top: int = 12) -> dict[str, 
 
 def visit(geom: ControllerGeometry, pose: np.ndarray, target: np.ndarray, plan: CalibrationPlan,
           label: str) -> Generator[Any, Any, np.ndarray]:
-    """Move from `pose` to `target` in bounded steps, arriving with every leg extending; returns the target."""
+    """Move from `pose` to `target` in bounded steps, arriving with every leg extending; returns the leg lengths the
+    controller reached at the target."""
     ik = geom.ik_geometry()
+    reached = inverse_kinematics(ik, target)
     for kind, waypoint in waypoints(ik, pose, target, plan):
         legs = inverse_kinematics(ik, waypoint)
         if kind == "approach":
             legs = legs - plan.approach_mm
         elif kind == "retreat":
             legs = legs - plan.repeat_retreat_mm
-        yield m.MoveLegs(m.as_tuple(legs), f"{label} {kind}")
-    return target
+        reached = yield m.MoveLegs(m.as_tuple(legs), f"{label} {kind}")
+    return np.asarray(reached, dtype=float)
+
+
+def measure_here(acq: Acquisition, phase: str, index: int, cmd: np.ndarray, reached: np.ndarray
+                 ) -> Generator[Any, Any, dict]:
+    """Measure the pose the platform is at, predicted by the run's model from the reached legs; the model learns the
+    row."""
+    expected = acq.expect(reached, cmd)
+    row = yield m.Measure(phase, index, m.as_tuple(cmd),
+                          None if expected is None else m.as_tuple(expected.pose),
+                          None if expected is None else m.as_tuple(expected.cov))
+    acq.learn(row)
+    return row
 
 
 def return_home(geom: ControllerGeometry, pose: np.ndarray, robot: Robot, plan: CalibrationPlan
@@ -157,24 +174,35 @@ def return_home(geom: ControllerGeometry, pose: np.ndarray, robot: Robot, plan: 
 
 
 def _measure_phase(phase: str, poses: np.ndarray, geom: ControllerGeometry, pose: np.ndarray,
-                   plan: CalibrationPlan, skip: frozenset[int] = frozenset()) -> Generator[Any, Any, np.ndarray]:
-    """Visit and measure the phase's poses not yet in the journal (nor in `skip`: out of the machine's reach);
-    checkpoints time the phase (first start kept)."""
+                   plan: CalibrationPlan, acq: Acquisition, skip: frozenset[int] = frozenset(),
+                   skipped: dict[int, str] | None = None) -> Generator[Any, Any, np.ndarray]:
+    """Visit and measure the phase's poses not yet in the journal (nor in `skip`: out of the machine's reach); a
+    pose the run's model says would drive a leg beyond its travel is skipped and said in `skipped` (index: why).
+    Checkpoints time the phase (first start kept)."""
     done = {row["index"] for row in (yield m.Recall((phase,)))}
     todo = [k for k in range(len(poses)) if k not in done and k not in skip]
     if todo and not done:
         yield m.Checkpoint(f"phase_start:{phase}")
+    ik = geom.ik_geometry()
     for k in todo:
-        pose = yield from visit(geom, pose, poses[k], plan, f"{phase} {k + 1}")
+        target = inverse_kinematics(ik, poses[k])
+        why = acq.unreachable(np.vstack([target - plan.approach_mm, target]), f"{phase.replace('_', ' ')} pose {k + 1}")
+        if why is not None:
+            if skipped is not None:
+                skipped[k] = why
+            yield m.Checkpoint(f"skipped:{phase}:{k + 1}", {"reason": why})
+            continue
+        reached = yield from visit(geom, pose, poses[k], plan, f"{phase} {k + 1}")
+        pose = poses[k]
         yield m.Settle(plan.settle_s)
-        yield m.Measure(phase, k, m.as_tuple(poses[k]))
+        yield from measure_here(acq, phase, k, poses[k], reached)
     if todo:
         yield m.Checkpoint(f"phase_end:{phase}")
     return pose
 
 
-def _adaptive_measure_phase(run: AdaptiveRun, geom: ControllerGeometry, pose: np.ndarray, plan: CalibrationPlan
-                            ) -> Generator[Any, Any, tuple[np.ndarray, dict]]:
+def _adaptive_measure_phase(run: AdaptiveRun, geom: ControllerGeometry, pose: np.ndarray, plan: CalibrationPlan,
+                            acq: Acquisition) -> Generator[Any, Any, tuple[np.ndarray, dict]]:
     """Ask for the next pose, visit and measure it, update; until the stop. The journaled rows are replayed first,
     so a resumed run is in the same state and makes the same next choices. Returns the pose and the last decision."""
     from hilcal.planning.sequential import decide, replay, update
@@ -192,9 +220,10 @@ def _adaptive_measure_phase(run: AdaptiveRun, geom: ControllerGeometry, pose: np
         if decision.stop is not None:
             break
         k = state.n_rows
-        pose = yield from visit(geom, pose, decision.next.pose, plan, f"measure {k + 1}")
+        reached = yield from visit(geom, pose, decision.next.pose, plan, f"measure {k + 1}")
+        pose = decision.next.pose
         yield m.Settle(plan.settle_s)
-        row = yield m.Measure("measure", k, m.as_tuple(decision.next.pose))
+        row = yield from measure_here(acq, "measure", k, decision.next.pose, reached)
         state = update(problem, state, row["cmd"], row["legs"], row["meas"])
         measured = True
     if measured:
@@ -212,26 +241,32 @@ def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptio
     yield m.PrepareCmm()
     before, info = yield m.ReadParams("before")
     geom = controller_geometry(before)
-    pose = forward_kinematics(geom.ik_geometry(), (yield m.ReadLegs()), robot.home)[0]
+    acq = Acquisition.start(robot, geom.a, geom.b, geom.l0, (yield m.Recall(PRE_PHASES)))
+    legs_now = yield m.ReadLegs()
+    acq.check_readings(legs_now)
+    pose = forward_kinematics(geom.ik_geometry(), legs_now, robot.home)[0]
     yield m.Enable()
     adaptive = None
+    skipped: dict[int, str] = {}
+    skipped_verify: dict[int, str] = {}
     if options.adaptive is not None:
-        pose, adaptive = yield from _adaptive_measure_phase(options.adaptive, geom, pose, plan)
+        pose, adaptive = yield from _adaptive_measure_phase(options.adaptive, geom, pose, plan, acq)
     else:
-        pose = yield from _measure_phase("measure", plan.poses("measure"), geom, pose, plan)
-    pose = yield from _measure_phase("verify", plan.poses("verify"), geom, pose, plan)
+        pose = yield from _measure_phase("measure", plan.poses("measure"), geom, pose, plan, acq, skipped=skipped)
+    pose = yield from _measure_phase("verify", plan.poses("verify"), geom, pose, plan, acq, skipped=skipped_verify)
+    noted = [*acq.notes, *skipped.values(), *skipped_verify.values()]
     rows = yield m.Recall(PRE_PHASES)
     if adaptive is not None and adaptive["stop"]["kind"] == "not_identifiable":
         yield from return_home(geom, pose, robot, plan)
         yield m.Disable()
         result = ProcedureResult("not identifiable", chosen=options.estimator, before_params=before,
-                                 adaptive=adaptive)
+                                 adaptive=adaptive, acquisition=noted)
         result.problems = [adaptive["stop"]["sentence"]]
         yield m.Checkpoint("not_identifiable", {"problems": result.problems})
         return result
     rec = recording_from_rows(rows, robot)
     result = ProcedureResult("measured", recording=rec, chosen=options.estimator, before_params=before,
-                             adaptive=adaptive)
+                             adaptive=adaptive, acquisition=noted)
     result.outcomes = {est: calibrate(rec, robot, estimator=est) for est in ("ls", "linf")}
     controller = controller_info(before, info)
     physics = decide(rec, robot, result.outcomes[options.estimator], controller, physics=options.physics,
@@ -266,11 +301,14 @@ def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptio
     yield m.Disable()
     result.upload = yield m.Upload(new_params, options.save, result.block)
     yield m.Enable()
-    pose = yield from _measure_phase(AFTER_PHASE, plan.poses("verify"), result.compensation.parameters, pose, plan,
-                                     skip=frozenset(r.index for r in reach))
+    uploaded = result.compensation.parameters
+    after = Acquisition.start(robot, uploaded.a, uploaded.b, uploaded.l0,
+                              (yield m.Recall((AFTER_PHASE, ACCEPTANCE_PHASE))), tightening=AFTER_UPLOAD_TIGHTENING)
+    pose = yield from _measure_phase(AFTER_PHASE, plan.poses("verify"), uploaded, pose, plan, after,
+                                     skip=frozenset(r.index for r in reach) | frozenset(skipped_verify))
     if options.acceptance is not None:
         route, _ = options.acceptance.route()
-        pose = yield from _measure_phase(ACCEPTANCE_PHASE, route, result.compensation.parameters, pose, plan)
+        pose = yield from _measure_phase(ACCEPTANCE_PHASE, route, uploaded, pose, plan, after)
     pose = yield from return_home(result.compensation.parameters, pose, robot, plan)
     yield m.Disable()
     result.after_rows = yield m.Recall((AFTER_PHASE,))

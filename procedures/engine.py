@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import structlog
 
+from drivers.cmm_probing import REGISTERED_DEG, REGISTERED_MM
 from drivers.controller_modbus import CompensationBlock, ParameterSet
 from hilcal.protocols.controller_states import MOTION_STATES, ControllerState
 from hilcal.protocols.registers import Capability
@@ -83,6 +84,10 @@ class Engine:
         self.cmm_alignment = devices.cmm_alignment
         """Where the probe patterns are laid out: the station's alignment, then each pose's registration on the
         base spheres (only a prediction: every pose measures its base spheres again and is computed from them)."""
+        cmm_section = getattr(devices.station, "cmm", None)
+        self.alignment_tolerance: tuple[float, float] | None = None if cmm_section is None else (
+            cmm_section.alignment_tolerance_mm, cmm_section.alignment_tolerance_deg)
+        """How well `cmm_alignment` is known (mm, deg): the station's tolerance until a pose registered the base."""
         self._reads_temperature: bool | None = None
         self.guard = LinkGuard(devices, journal, links, approach_mm=approach_mm, move_timeout_s=move_timeout_s,
                                publish=self._publish)
@@ -223,9 +228,15 @@ class Engine:
             return row
         temperature_c = self._leg_temperature_c()
         legs = np.asarray(self.devices.controller.feedback().lengths_mm, dtype=float)
-        pm = self.devices.cmm.measure_pose(self.devices.robot, self.cmm_alignment, expected_pose=np.array(msg.cmd_pose))
+        expected = np.array(msg.cmd_pose if msg.expected_pose is None else msg.expected_pose)
+        cov = None if msg.pose_cov is None else np.reshape(msg.pose_cov, (6, 6))
+        registered = self.alignment_tolerance == (REGISTERED_MM, REGISTERED_DEG)
+        pm = self.devices.cmm.measure_pose(self.devices.robot, self.cmm_alignment, expected_pose=expected,
+                                           pose_cov=cov, alignment_tolerance=self.alignment_tolerance,
+                                           registered=registered)
         self.cmm_alignment = pm.refined_alignment
-        detail = {"sphere_fit_rms_mm": float(np.max(pm.pose_fit.rms_residual_mm))}
+        self.alignment_tolerance = (REGISTERED_MM, REGISTERED_DEG)
+        detail = {"sphere_fit_rms_mm": float(np.max(pm.pose_fit.rms_residual_mm)), **pm.extra}
         if temperature_c is not None:
             detail["temp_c"] = temperature_c
         row = self.journal.add_measurement(msg.phase, msg.index, time.monotonic() - self.t0, np.array(msg.cmd_pose),

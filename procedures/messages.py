@@ -69,6 +69,11 @@ class Measure:
     phase: str
     index: int
     cmd_pose: tuple[float, ...]
+    expected_pose: tuple[float, ...] | None = None
+    """Where the run's model of the machine expects the platform (None: at the commanded pose)."""
+    pose_cov: tuple[float, ...] | None = None
+    """The 36 entries of the expectation's covariance of [dt (mm); dw (rad)] (``hilcal.acquisition.PosePrediction``);
+    None: the CMM driver's default uncertainty."""
 
 
 @dataclass(frozen=True)

@@ -235,7 +235,7 @@ def _per_pose_plot(r: RunReport, which: int, label: str, unit: str) -> str:
         after = np.asarray(r.per_pose_after[which], dtype=float)
         chosen = ESTIMATOR_LABELS.get(r.chosen, r.chosen)
         ax.plot(poses, after, "s-", color="tab:blue", label=f"after calibration ({chosen}, measured)")
-        if after.min() > 0 and before.max() / after.max() > 20:
+        if np.nanmin(after) > 0 and np.nanmax(before) / np.nanmax(after) > 20:
             plain_log_scale(ax)
             title += " (log scale)"
     predicted = r.predicted_after.get(r.chosen)

@@ -1,0 +1,346 @@
+"""How a CMM finds and measures tooling spheres and a platform pose, on any transport (``drivers.cmm_base``).
+
+Every sphere comes with a prediction and a bound (how far off it may be, ``hilcal.acquisition.spheres``). A sphere
+predicted to within a fraction of its radius is probed at once: the touches start beyond where its surface could be
+and search as far past it. A less certain one is searched for first, as a CMM operator would: descents from above on
+a widening pattern until a touch, touches around that point, the centre from that cap; a sphere not found where a
+probe pattern expected it is searched for too, on a wider pattern each time, up to ``max_search_mm``. Every
+positioning move keeps out of the regions where any sphere could be (``hilcal.acquisition.routes``). Each measured
+sphere conditions its body's frame, so the next sphere of that body is predicted better.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import structlog
+
+from drivers.cmm_types import (
+    PoseMeasurement,
+    PoseMeasurementError,
+    ProbeMiss,
+    ProbeRecord,
+    ProbeStatus,
+    SphereMeasurement,
+    SphereMeasurementError,
+    SphereSearch,
+    as_transform,
+    transform_from_pose,
+)
+from hilcal.acquisition.routes import Ball, plan_route
+from hilcal.acquisition.search import basis, cap_centre, cap_offsets, descent_offsets
+from hilcal.acquisition.spheres import BodyBelief, SpherePrediction, park_height_mm
+from hilcal.pose_measurement import pose_from_spheres, rigid_fit
+from hilcal.protocols.cmm import MAX_SEARCH_DISTANCE_MM
+from hilcal.robot import Robot
+from hilcal.sphere_fit import SphereFitError, fit_sphere, fit_sphere_robust, sphere_probe_pattern
+
+log = structlog.get_logger(__name__)
+
+MEASURED_SIGMA_MM = 0.005
+"""A measured sphere centre's uncertainty per axis when it conditions its body's frame."""
+REGISTERED_MM, REGISTERED_DEG = 0.05, 0.002
+"""How well a frame registered on measured spheres is known (a bound), for the next pose's predictions."""
+
+
+@dataclass
+class Regions:
+    """Where each sphere of a measurement could be: the balls every positioning move keeps out of."""
+
+    balls: dict[str, Ball] = field(default_factory=dict)
+
+    def others(self, key: str) -> list[Ball]:
+        return [b for k, b in self.balls.items() if k != key]
+
+
+def _up() -> np.ndarray:
+    return np.array([0.0, 0.0, 1.0])
+
+
+class Prober:
+    """One CMM's probing strategy (the CMM gives the tracked primitives ``goto``, ``probe`` and ``clear_errors``)."""
+
+    def __init__(self, cmm: Any) -> None:
+        self.cmm = cmm
+        self.cfg = cmm.probing
+
+    # ------------------------------------------------------------------ moves
+
+    def _go(self, point: np.ndarray, avoid: list[Ball], *, last: bool = True) -> None:
+        """Move the probe to `point` along a route clear of `avoid` (straight when nothing is in the way); without
+        `last`, only to the last waypoint before it (a touch's own positioning move goes the rest of the way)."""
+        start = self.cmm.position_mm
+        route = [point] if start is None else plan_route(start, point, avoid, _up())
+        for waypoint in route if last else route[:-1]:
+            self.cmm.goto(waypoint)
+
+    def _touch(self, target: np.ndarray, ijk: np.ndarray, search_mm: float, avoid: list[Ball],
+               records: list[ProbeRecord]) -> int | None:
+        """One touch from a clear start (routed there first), recorded; its record index, or None on a miss."""
+        self._go(target + search_mm * ijk, avoid, last=False)
+        try:
+            point = self.cmm.probe(target, ijk, search_mm)
+        except ProbeMiss as miss:
+            log.info("cmm.probe_miss", target_mm=target.tolist(), ijk=ijk.tolist(), code=miss.code)
+            records.append(ProbeRecord(target, ijk, None, ProbeStatus.MISS, None, miss.text))
+            self.cmm.clear_errors()
+            return None
+        records.append(ProbeRecord(target, ijk, point, ProbeStatus.USED))
+        return len(records) - 1
+
+    # ------------------------------------------------------------------ one sphere
+
+    def measure_sphere(self, pred: SpherePrediction, radius_mm: float, others: list[Ball] | None = None
+                       ) -> SphereMeasurement:
+        """Find and measure one sphere (see the module docstring); SphereMeasurementError when it cannot be."""
+        others = others or []
+        centre, bound, search = pred.centre_mm, pred.bound_mm, None
+        if bound > self.cfg.search_fraction * radius_mm:
+            search = self._locate(pred, radius_mm, bound, others)
+            centre, bound = search.found_mm, self.cfg.least_bound_mm
+        try:
+            first = self._pattern(centre, radius_mm, bound, pred.up, others)
+        except SphereMeasurementError as err:
+            log.info("cmm.sphere_not_where_predicted", predicted_mm=centre.tolist(), bound_mm=bound, error=str(err))
+            search = self._locate(SpherePrediction(centre, bound, pred.up), radius_mm, max(2.0 * bound, radius_mm),
+                                  others)
+            first = self._pattern(search.found_mm, radius_mm, self.cfg.least_bound_mm, pred.up, others)
+        if first.offset_from_nominal_mm <= self.cfg.prediction_tol_mm:
+            return _with(first, search=search, nominal=pred.centre_mm)
+        log.info("cmm.sphere_remeasure", nominal_mm=first.nominal_centre_mm.tolist(),
+                 fitted_mm=first.centre_mm.tolist(), offset_mm=first.offset_from_nominal_mm)
+        second = self._pattern(first.centre_mm, radius_mm, self.cfg.least_bound_mm, pred.up, others)
+        return _with(second, search=search, nominal=pred.centre_mm, superseded=first)
+
+    def _locate(self, pred: SpherePrediction, r: float, bound: float, others: list[Ball]) -> SphereSearch:
+        """Descend from above on widening lattices until a touch, then touch the cap around it (module docstring)."""
+        cfg = self.cfg
+        x, y, up = basis(pred.up)
+        m = cfg.search_margin_mm
+        touches = 0
+        stage = min(bound, cfg.max_search_mm)
+        while True:
+            top, bottom = r + max(stage, pred.ceiling_mm) + m, -(stage + m)
+            half = min(0.5 * (top - bottom), MAX_SEARCH_DISTANCE_MM)
+            region = Ball(pred.centre_mm, r + stage + cfg.route_margin_mm)
+            log.info("cmm.sphere_search", predicted_mm=pred.centre_mm.tolist(), bound_mm=stage)
+            for offset in descent_offsets(r, stage):
+                target = pred.centre_mm + offset[0] * x + offset[1] * y + (top - half) * up
+                records: list[ProbeRecord] = []
+                touches += 1
+                if self._touch(target, up, half, [*others, region], records) is not None:
+                    found = self._cap(records[-1].point_mm, r, up, others)
+                    touches += found[1]
+                    return SphereSearch(pred.centre_mm, stage, touches, found[0])
+            if stage >= cfg.max_search_mm:
+                raise SphereMeasurementError(
+                    f"sphere near {np.round(pred.centre_mm, 3).tolist()} mm: not found within {stage:.1f} mm of its "
+                    f"prediction ({touches} descents): check the station's alignment and the sphere's mounting")
+            stage = min(2.0 * stage, cfg.max_search_mm)
+
+    def _cap(self, first: np.ndarray, r: float, up: np.ndarray, others: list[Ball]) -> tuple[np.ndarray, int]:
+        """The centre from descents around a first touch on the cap (the first touch alone: the pole below it)."""
+        x, y, _ = basis(up)
+        m = self.cfg.search_margin_mm
+        # The centre lies within r of the touch and not above it: nothing of the sphere is higher than touch + r,
+        # and all of it lies within this ball.
+        region = Ball(first - 2.0 * r * up, 3.0 * r + self.cfg.route_margin_mm)
+        points, touches = [first], 0
+        for offset in cap_offsets(r):
+            target = first + offset[0] * x + offset[1] * y
+            records: list[ProbeRecord] = []
+            touches += 1
+            if self._touch(target, up, r + m, [*others, region], records) is not None:
+                points.append(records[-1].point_mm)
+            if len(points) >= 4:
+                break
+        try:
+            centre, _ = cap_centre(np.array(points), r, up)
+        except ValueError:
+            centre = first - r * up
+        return centre, touches
+
+    def _pattern(self, centre: np.ndarray, r: float, bound: float, up: np.ndarray, others: list[Ball]
+                 ) -> SphereMeasurement:
+        """One pass of the probe pattern around `centre` (the sphere within `bound` of it): misses and outliers
+        touched again within the re-probe budget; SphereMeasurementError when too few good points remain."""
+        cfg = self.cfg
+        search = max(cfg.min_search_mm, bound + cfg.search_margin_mm)
+        avoid = [*others, Ball(centre, r + bound + cfg.route_margin_mm)]
+        targets, normals = sphere_probe_pattern(centre, r, up, cfg.n_ring, cfg.elevations_deg)
+        self._go(centre + (r + max(cfg.clearance_mm, search + cfg.search_margin_mm)) * normals[0], avoid)
+        records: list[ProbeRecord] = []
+        good: list[tuple[int, int]] = []
+        missed: list[int] = []
+        for k in range(len(targets)):
+            idx = self._touch(targets[k], normals[k], search, avoid, records)
+            (missed.append(k) if idx is None else good.append((k, idx)))
+        budget = self._reprobe(missed, targets, normals, search, avoid, records, good, cfg.max_reprobes)
+        threshold = cfg.outlier_threshold_mm
+        while True:
+            if len(good) < cfg.min_points:
+                raise SphereMeasurementError(
+                    f"sphere near {np.round(centre, 3).tolist()} mm: only {len(good)} good points "
+                    f"(need {cfg.min_points}) after {len(records)} touches", tuple(records))
+            pts = np.array([records[i].point_mm for _, i in good])
+            try:
+                robust = fit_sphere_robust(pts, r, threshold, centre)
+            except SphereFitError as err:
+                raise SphereMeasurementError(f"sphere near {centre.tolist()} mm: {err}", tuple(records)) from err
+            for j in robust.outliers:
+                rec, residual = records[good[j][1]], float(robust.residuals_mm[j])
+                log.warning("cmm.probe_outlier", point_mm=rec.point_mm.tolist(), residual_mm=residual)
+                records[good[j][1]] = ProbeRecord(rec.target_mm, rec.ijk, rec.point_mm, ProbeStatus.OUTLIER,
+                                                  residual, "residual over threshold")
+            if robust.inliers.all():
+                break
+            retry = [good[j][0] for j in robust.outliers]
+            good = [good[j] for j in np.flatnonzero(robust.inliers)]
+            if budget == 0:
+                break
+            budget = self._reprobe(retry, targets, normals, search, avoid, records, good, budget)
+        return self._judge(centre, r, robust.fit, good, records, threshold)
+
+    def _reprobe(self, indices: list[int], targets: np.ndarray, normals: np.ndarray, search: float,
+                 avoid: list[Ball], records: list, good: list[tuple[int, int]], budget: int) -> int:
+        """Touch the pattern points `indices` again while the re-probe budget lasts; returns what is left."""
+        for k in indices:
+            if budget == 0:
+                break
+            budget -= 1
+            idx = self._touch(targets[k], normals[k], search, avoid, records)
+            if idx is not None:
+                good.append((k, idx))
+        return budget
+
+    def _judge(self, centre: np.ndarray, r: float, fit: Any, good: list[tuple[int, int]], records: list,
+               threshold: float) -> SphereMeasurement:
+        """The fitted sphere with its checks: enough consistent points, the radius determined and right."""
+        cfg = self.cfg
+        used = np.array([records[i].point_mm for _, i in good])
+        final = _finalise(records, fit.centre_mm, r)
+        if len(used) < cfg.min_points:
+            raise SphereMeasurementError(
+                f"sphere near {np.round(centre, 3).tolist()} mm: only {len(used)} consistent points "
+                f"(need {cfg.min_points}; outlier threshold {threshold:.4f} mm) after {len(records)} touches", final)
+        try:
+            free = fit_sphere(used, None, fit.centre_mm)
+        except SphereFitError as err:
+            raise SphereMeasurementError(f"sphere near {centre.tolist()} mm: radius check: {err}", final) from err
+        radius_sd_mm = free.radius_sd_unit * max(cfg.probe_sigma_mm, fit.sigma_hat_mm)
+        if not radius_sd_mm <= cfg.radius_tol_mm / 3.0:
+            raise SphereMeasurementError(
+                f"sphere near {np.round(centre, 3).tolist()} mm: the used points determine the radius only to "
+                f"{radius_sd_mm:.4f} mm, too poorly for the {cfg.radius_tol_mm} mm radius check", final)
+        if np.any(np.abs(fit.residuals_mm) > threshold):
+            raise SphereMeasurementError(
+                f"sphere near {np.round(centre, 3).tolist()} mm: residuals up to "
+                f"{np.max(np.abs(fit.residuals_mm)):.4f} mm exceed the outlier threshold {threshold:.4f} mm "
+                "with no touches left to reject", final)
+        if abs(free.radius_mm - r) > cfg.radius_tol_mm:
+            raise SphereMeasurementError(
+                f"sphere near {np.round(centre, 3).tolist()} mm: free-fit radius {free.radius_mm:.4f} mm differs "
+                f"from the nominal {r} mm by more than {cfg.radius_tol_mm} mm", final)
+        log.debug("cmm.sphere_measured", centre_mm=fit.centre_mm.tolist(), rms_mm=fit.rms_mm,
+                  radius_free_mm=free.radius_mm, touches=len(records), rejected=len(records) - len(used))
+        return SphereMeasurement(centre_mm=fit.centre_mm, radius_mm=r, fit=fit, free_fit=free, probes=final,
+                                 nominal_centre_mm=centre)
+
+    # ------------------------------------------------------------------ a pose
+
+    def measure_pose(self, robot: Robot, alignment: np.ndarray, expected_pose: np.ndarray | None = None,
+                     pose_cov: np.ndarray | None = None, alignment_tolerance: tuple[float, float] | None = None,
+                     registered: bool = True) -> PoseMeasurement:
+        """The base spheres, then the platform spheres, each predicted from its body's frame as conditioned by the
+        spheres before it; the pose from both registrations (see ``CmmInterface.measure_pose``)."""
+        cfg = self.cfg
+        T0 = as_transform(alignment)
+        expected = robot.home if expected_pose is None else np.asarray(expected_pose, dtype=float)
+        r = robot.sphere_radius_mm
+        mm, deg = alignment_tolerance or (cfg.default_bound_mm, 0.0)
+        base_belief = BodyBelief.within(T0, mm, deg)
+        if pose_cov is None:
+            pose_cov = BodyBelief.within(np.eye(4), cfg.default_bound_mm, 0.0).cov
+        T_bp = transform_from_pose(expected)
+        platform_belief = base_belief.composed(T_bp, np.asarray(pose_cov, dtype=float))
+        floor = cfg.least_bound_mm
+        regions = Regions()
+        for key, belief, points in (("base", base_belief, robot.base_spheres),
+                                    ("platform", platform_belief, robot.platform_spheres)):
+            for k, s in enumerate(points):
+                pred = belief.predict(s, _up(), floor)
+                regions.balls[f"{key}{k}"] = Ball(pred.centre_mm, r + pred.bound_mm + cfg.route_margin_mm)
+        touches0 = self.cmm.touches
+        ceiling = 0.0 if registered else cfg.max_search_mm
+        base, base_belief = self._measure_body("base", base_belief, robot.base_spheres, r, floor, regions, ceiling)
+        base_centres = np.array([m.centre_mm for m in base])
+        R_cb, t_cb, rms_b = rigid_fit(robot.base_spheres, base_centres)
+        if rms_b > cfg.registration_tol_mm:
+            raise PoseMeasurementError(f"base spheres do not match the robot's base sphere layout: registration RMS "
+                                       f"{rms_b:.4f} mm > {cfg.registration_tol_mm} mm")
+        T_cb = np.eye(4)
+        T_cb[:3, :3], T_cb[:3, 3] = R_cb, t_cb
+        registered = BodyBelief.within(T_cb, REGISTERED_MM, REGISTERED_DEG)
+        platform_belief = registered.composed(T_bp, np.asarray(pose_cov, dtype=float))
+        platform, _ = self._measure_body("platform", platform_belief, robot.platform_spheres, r, floor, regions)
+        fit = pose_from_spheres(np.array([m.centre_mm for m in platform]), base_centres, robot)
+        if fit.platform_rms_mm > cfg.registration_tol_mm:
+            raise PoseMeasurementError(f"platform spheres do not match the robot's platform sphere layout: "
+                                       f"registration RMS {float(fit.platform_rms_mm):.4f} mm > "
+                                       f"{cfg.registration_tol_mm} mm")
+        self._park(robot, T_cb, fit.pose, regions)
+        searched = [m.search for m in (*base, *platform) if m.search is not None]
+        extra = {"touches": self.cmm.touches - touches0, "searched_spheres": len(searched),
+                 "search_touches": sum(s.touches for s in searched),
+                 "largest_search_offset_mm": max((s.offset_mm for s in searched), default=0.0)}
+        log.info("cmm.pose_measured", pose=fit.pose.tolist(), rms_mm=fit.rms_residual_mm.tolist(), **extra)
+        return PoseMeasurement(pose=fit.pose, pose_fit=fit, platform=platform, base=base, alignment=T0,
+                               refined_alignment=T_cb, expected_pose=expected, extra=extra)
+
+    def _park(self, robot: Robot, T_cb: np.ndarray, pose: np.ndarray, regions: Regions) -> None:
+        """Leave the probe above every place a platform sphere can reach, over the last one measured: the platform
+        moves next."""
+        T = transform_from_pose(pose)
+        above = T[:3, :3] @ robot.platform_spheres[-1] + T[:3, 3]
+        above[2] = park_height_mm(robot, self.cfg.clearance_mm)
+        self._go(T_cb[:3, :3] @ above + T_cb[:3, 3], list(regions.balls.values()))
+
+    def _measure_body(self, key: str, belief: BodyBelief, points: np.ndarray, r: float, floor: float,
+                      regions: Regions, ceiling_mm: float = 0.0) -> tuple[tuple[SphereMeasurement, ...], BodyBelief]:
+        """Each sphere of one body in turn, predicted from the frame the spheres before it conditioned."""
+        out = []
+        for k, s in enumerate(points):
+            name = f"{key}{k}"
+            pred = dataclasses.replace(belief.predict(s, _up(), floor), ceiling_mm=ceiling_mm)
+            regions.balls[name] = Ball(pred.centre_mm, r + pred.bound_mm + self.cfg.route_margin_mm)
+            m = self.measure_sphere(pred, r, regions.others(name))
+            regions.balls[name] = Ball(m.centre_mm, r + self.cfg.route_margin_mm)
+            belief = belief.condition(s, m.centre_mm, MEASURED_SIGMA_MM)
+            for j in range(k + 1, len(points)):
+                nxt = belief.predict(points[j], _up(), floor)
+                regions.balls[f"{key}{j}"] = Ball(nxt.centre_mm, r + nxt.bound_mm + self.cfg.route_margin_mm)
+            out.append(m)
+        return tuple(out), belief
+
+
+def _with(m: SphereMeasurement, *, search: SphereSearch | None, nominal: np.ndarray,
+          superseded: SphereMeasurement | None = None) -> SphereMeasurement:
+    """The measurement as reported: against the original prediction, with its search and first pass."""
+    return SphereMeasurement(centre_mm=m.centre_mm, radius_mm=m.radius_mm, fit=m.fit, free_fit=m.free_fit,
+                             probes=m.probes, nominal_centre_mm=nominal if superseded is None else m.nominal_centre_mm,
+                             superseded=superseded, search=search)
+
+
+def _finalise(records: list[ProbeRecord], centre: np.ndarray, radius_mm: float) -> tuple[ProbeRecord, ...]:
+    """Every record with its residual against the final centre."""
+    out = []
+    for rec in records:
+        if rec.point_mm is None:
+            out.append(rec)
+            continue
+        residual = float(np.linalg.norm(rec.point_mm - centre) - radius_mm)
+        out.append(ProbeRecord(rec.target_mm, rec.ijk, rec.point_mm, rec.status, residual, rec.detail))
+    return tuple(out)

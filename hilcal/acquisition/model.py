@@ -1,0 +1,219 @@
+"""What the run believes about the machine while it measures it: a refit after every pose, held to priors.
+
+The controller commands leg readings through its own geometry (a, b, l0). The machine as it is differs by joint
+errors, leg-offset errors and gross reading-scale faults (a transducer gradient set wrong). Per leg the model has
+eight parameters relative to the controller's geometry, [da (3, platform frame), db (3, base frame), dl0, k], and the
+true joint-to-joint length is
+
+    L_i = reading_i + dl0_i + k_i (reading_i - l0_i)
+
+(k_i: physical mm per read mm, minus one; a transducer whose gradient reads g too long has k = 1/(1 + g) - 1).
+A Gaussian prior (the robot file's ``[tolerances]``) holds the 48 parameters. Every measured pose refits the maximum
+a posteriori estimate on the leg-length residuals at all measured poses (Gauss-Newton on the stacked system of data
+and prior, so no direction the poses cannot see is left unbounded) with its covariance; the prediction of the next
+pose carries that covariance and the misfit the model shows (physics it leaves out) into a pose covariance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hilcal.kinematics import Geometry, forward_kinematics, inverse_jacobian, leg_vectors, split_pose
+from hilcal.robot import Robot
+
+N_LEGS = 6
+PER_LEG = 8
+N_PARAMS = N_LEGS * PER_LEG
+MAX_ITERATIONS = 12
+STEP_TOL = 1e-9
+
+
+@dataclass(frozen=True)
+class Priors:
+    """Standard deviations of the machine's errors before anything is measured, and the misfit floor."""
+
+    joint_mm: float = 2.0
+    leg_offset_mm: float = 3.0
+    reading_scale: float = 0.02
+    """k, the reading's gradient error as a fraction (0.02 = 2 %)."""
+    misfit_mm: float = 0.02
+    """The least leg-length misfit assumed: transducer resolution, the physics a rigid model leaves out."""
+
+    @classmethod
+    def of(cls, robot: Robot) -> Priors:
+        """The robot file's ``[tolerances]`` (its defaults when the file has none)."""
+        t = robot.tolerances
+        return cls(t.joint_mm, t.leg_offset_mm, t.reading_scale_pct / 100.0, t.misfit_mm)
+
+    def sigmas(self) -> np.ndarray:
+        """(48,) prior standard deviation per parameter, in the model's order."""
+        leg = [self.joint_mm] * 6 + [self.leg_offset_mm, self.reading_scale]
+        return np.tile(np.asarray(leg, dtype=float), N_LEGS)
+
+    def tightened(self, factor: float) -> Priors:
+        """The priors divided by `factor` (a machine just calibrated is known far better than a new one)."""
+        return Priors(self.joint_mm / factor, self.leg_offset_mm / factor, self.reading_scale / factor,
+                      self.misfit_mm)
+
+
+@dataclass(frozen=True)
+class PosePrediction:
+    """The pose the model expects for some leg readings and its covariance."""
+
+    pose: np.ndarray
+    """(6,) [x, y, z mm, roll, pitch, yaw deg] of the platform in the base frame."""
+    cov: np.ndarray
+    """(6, 6) covariance of [dt (mm); dw (rad)], dw the small rotation about the platform origin in base axes."""
+
+    @property
+    def position_sd_mm(self) -> float:
+        """The largest standard deviation of the platform origin's position, mm."""
+        return float(np.sqrt(np.max(np.linalg.eigvalsh(self.cov[:3, :3]))))
+
+
+@dataclass(frozen=True)
+class MachineBelief:
+    """The acquisition model after some measured poses (see the module docstring); build with `prior_belief`."""
+
+    a: np.ndarray
+    b: np.ndarray
+    l0: np.ndarray
+    """The controller's geometry the readings are commanded through: (6, 3), (6, 3), (6,) mm."""
+    priors: Priors
+    x: np.ndarray
+    """(48,) the estimate, per leg [da_x, da_y, da_z, db_x, db_y, db_z (mm), dl0 (mm), k]."""
+    cov: np.ndarray
+    """(48, 48) its covariance."""
+    legs_mm: np.ndarray
+    """(N, 6) readings of the measured poses."""
+    poses: np.ndarray
+    """(N, 6) measured poses."""
+    misfit_mm: float
+    """Leg-length misfit per residual: the floor, or what the fit's residuals show beyond it."""
+    residual_rms_mm: float
+    """RMS of the leg-length residuals at the measured poses (0 before any pose)."""
+
+    @property
+    def n_poses(self) -> int:
+        return len(self.poses)
+
+    def per_leg(self) -> np.ndarray:
+        """(6, 8) the estimate per leg."""
+        return self.x.reshape(N_LEGS, PER_LEG)
+
+    def geometry(self, legs_mm: np.ndarray) -> Geometry:
+        """The kinematic geometry of the estimate for these readings (the reading scale folded into dl0)."""
+        p = self.per_leg()
+        stroke = np.asarray(legs_mm, dtype=float) - self.l0
+        return Geometry(self.a + p[:, 0:3], self.b + p[:, 3:6], p[:, 6] + p[:, 7] * stroke)
+
+    def reading_gain(self) -> np.ndarray:
+        """(6,) how much too long each transducer reads its stroke (g = 1/(1 + k) - 1; 0.06 = 6 % long)."""
+        return 1.0 / (1.0 + self.per_leg()[:, 7]) - 1.0
+
+    def physical_lengths_mm(self, legs_mm: np.ndarray) -> np.ndarray:
+        """(..., 6) the legs' lengths on the controller's scale (l0 + stroke) once the reading scale is undone: what
+        the travel limits apply to."""
+        legs = np.asarray(legs_mm, dtype=float)
+        return self.l0 + (legs - self.l0) * (1.0 + self.per_leg()[:, 7])
+
+
+def prior_belief(a_mm: np.ndarray, b_mm: np.ndarray, l0_mm: np.ndarray, priors: Priors) -> MachineBelief:
+    """The belief before any pose: the controller's geometry with the priors' covariance."""
+    sig = priors.sigmas()
+    return MachineBelief(np.asarray(a_mm, dtype=float), np.asarray(b_mm, dtype=float),
+                         np.asarray(l0_mm, dtype=float), priors, np.zeros(N_PARAMS), np.diag(sig**2),
+                         np.zeros((0, N_LEGS)), np.zeros((0, 6)), priors.misfit_mm, 0.0)
+
+
+def _residuals(belief: MachineBelief, x: np.ndarray, legs: np.ndarray, poses: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Leg-length residuals (N*6,) at the measured poses and their Jacobian (N*6, 48)."""
+    p = x.reshape(N_LEGS, PER_LEG)
+    stroke = legs - belief.l0
+    geom = Geometry(belief.a + p[:, 0:3], belief.b + p[:, 3:6], np.zeros(N_LEGS))
+    R, t = split_pose(poses)
+    _, length, u = leg_vectors(geom, R, t)
+    r = length - (legs + p[:, 6] + p[:, 7] * stroke)
+    return r.reshape(-1), _constraint_rows(u, R, stroke).reshape(-1, N_PARAMS)
+
+
+def _constraint_rows(u: np.ndarray, R: np.ndarray, stroke: np.ndarray) -> np.ndarray:
+    """d(geometric minus true length)/d(parameters) [..., 6, 48]: per leg [u^T R, -u^T, -1, -stroke]."""
+    G = np.zeros((*u.shape[:-2], N_LEGS, N_PARAMS))
+    uR = np.einsum("...ij,...jk->...ik", u, R)
+    for i in range(N_LEGS):
+        c = PER_LEG * i
+        G[..., i, c:c + 3] = uR[..., i, :]
+        G[..., i, c + 3:c + 6] = -u[..., i, :]
+        G[..., i, c + 6] = -1.0
+        G[..., i, c + 7] = -stroke[..., i]
+    return G
+
+
+def update(belief: MachineBelief, legs_mm: np.ndarray, pose: np.ndarray) -> MachineBelief:
+    """The belief with one more measured pose (its readings and the pose the instrument measured)."""
+    legs = np.vstack([belief.legs_mm, np.asarray(legs_mm, dtype=float).reshape(1, N_LEGS)])
+    poses = np.vstack([belief.poses, np.asarray(pose, dtype=float).reshape(1, 6)])
+    return refit(belief, legs, poses)
+
+
+def refit(belief: MachineBelief, legs_mm: np.ndarray, poses: np.ndarray) -> MachineBelief:
+    """The MAP estimate and covariance on these measured poses (replacing the belief's), from the prior."""
+    legs = np.asarray(legs_mm, dtype=float).reshape(-1, N_LEGS)
+    poses = np.asarray(poses, dtype=float).reshape(-1, 6)
+    sig_p = belief.priors.sigmas()
+    x = np.zeros(N_PARAMS)
+    misfit = belief.priors.misfit_mm
+    if len(poses) == 0:
+        return prior_belief(belief.a, belief.b, belief.l0, belief.priors)
+    for _ in range(2):  # the misfit scales the data's weight: estimate, weigh again
+        for _ in range(MAX_ITERATIONS):
+            r, J = _residuals(belief, x, legs, poses)
+            A = np.vstack([J / misfit, np.diag(1.0 / sig_p)])
+            rhs = -np.concatenate([r / misfit, x / sig_p])
+            step = np.linalg.lstsq(A, rhs, rcond=None)[0]
+            x = x + step
+            if np.max(np.abs(step) / sig_p) < STEP_TOL:
+                break
+        r, J = _residuals(belief, x, legs, poses)
+        A = np.vstack([J / misfit, np.diag(1.0 / sig_p)])
+        _, s, Vt = np.linalg.svd(A, full_matrices=False)
+        cov = (Vt.T / s**2) @ Vt
+        determined = float(np.sum(1.0 - np.diag(cov) / sig_p**2))
+        dof = r.size - determined
+        seen = float(np.sqrt(np.sum(r**2) / dof)) if dof >= 3 else 0.0
+        new_misfit = max(belief.priors.misfit_mm, seen)
+        if np.isclose(new_misfit, misfit, rtol=0.05):
+            break
+        misfit = new_misfit
+    rms = float(np.sqrt(np.mean(r**2)))
+    return MachineBelief(belief.a, belief.b, belief.l0, belief.priors, x, cov, legs, poses, misfit, rms)
+
+
+def predict(belief: MachineBelief, legs_mm: np.ndarray, guess: np.ndarray) -> PosePrediction:
+    """The pose these readings put the platform at under the belief, with its covariance (``PosePrediction``).
+
+    ForwardKinematicsError when the readings reach no pose near `guess` under the belief.
+    """
+    legs = np.asarray(legs_mm, dtype=float)
+    geom = belief.geometry(legs)
+    pose = forward_kinematics(geom, legs, np.asarray(guess, dtype=float))[0]
+    R, t = split_pose(pose)
+    Jx = inverse_jacobian(geom, R, t)
+    _, _, u = leg_vectors(geom, R, t)
+    G = _constraint_rows(u, R, legs - belief.l0)
+    Jinv = np.linalg.inv(Jx)
+    D = -Jinv @ G
+    cov = D @ belief.cov @ D.T + belief.misfit_mm**2 * (Jinv @ Jinv.T)
+    return PosePrediction(pose, 0.5 * (cov + cov.T))
+
+
+def leg_discrepancy_mm(a_mm: np.ndarray, b_mm: np.ndarray, legs_mm: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """(6,) the length each leg has at a measured pose by the controller's geometry, minus what it reads: how much
+    longer than its reading each leg is (a model-free first look at a gross fault)."""
+    R, t = split_pose(np.asarray(pose, dtype=float))
+    _, length, _ = leg_vectors(Geometry(np.asarray(a_mm, dtype=float), np.asarray(b_mm, dtype=float)), R, t)
+    return length - np.asarray(legs_mm, dtype=float)
