@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 from rich.markup import escape
 
-from procedures.cli.common import EstimatorChoice, RobotOption, err, fail, out
+from procedures.cli.common import EstimatorChoice, err, fail, out
 from procedures.cli.panel import DEFAULT_PORT, PortOption
 from procedures.cli.records import RecordsOption, open_records
 from procedures.cli.signoff import AcceptanceOption, CyclesOption, ask_operator
@@ -20,11 +20,17 @@ class PhysicsChoice(enum.StrEnum):
     off = "off"
 
 
+RunRobotOption = Annotated[Path | None, typer.Option("--robot", help=(
+    "robot TOML file; the station file's robot and the simulator's (--sim-config) must be the same robot, by content "
+    "(refused before anything starts otherwise); default: theirs, else the built-in paper Table 1 robot"))]
+
+
 def run(
     out_dir: Annotated[Path, typer.Option("--out", help="run folder: journal, logs, recording, report")],
     sim: Annotated[bool, typer.Option("--sim", help="start the simulated devices and run against them")] = False,
     station: Annotated[Path | None, typer.Option(help="station TOML (CAN, Modbus, CMM, robot, timing); with --sim "
-                                                 "only its \\[timing] and sign-off settings are used")] = None,
+                                                 "only its \\[timing], sign-off settings and robot (which must be "
+                                                 "the simulator's) are used")] = None,
     sim_config: Annotated[Path | None, typer.Option(help="simulator TOML for --sim")] = None,
     resume: Annotated[str | None, typer.Option(help="continue the interrupted run RUN_ID in --out")] = None,
     yes: Annotated[bool, typer.Option("--yes", help="unattended: answer every prompt yes")] = False,
@@ -33,7 +39,7 @@ def run(
     physics: Annotated[PhysicsChoice, typer.Option(help="on: diagnose the run's own recording and upload the "
                                                    "compensation of what it finds with the geometry; off: the "
                                                    "geometry alone")] = PhysicsChoice.on,
-    robot: RobotOption = None,
+    robot: RunRobotOption = None,
     plan: Annotated[Path | None, typer.Option(help="re-run a saved plan.json (an adaptive run's is the plan as it "
                                               "executed it); with --adaptive, its verify poses and its measure poses "
                                               "as the reference")] = None,
@@ -79,6 +85,8 @@ def run(
     except AdaptiveError as e:
         fail(str(e))
     timing = (timing_or_fail(station) if station is not None else SIM_TIMING) if sim else None
+    if resume is None:  # a resumed run keeps the robot it started with (its journal holds it)
+        robot = _one_robot(robot, station, sim, sim_config)
     if operator is None and resume is None and not yes and not panel:
         operator = ask_operator()
     request = RunRequest(out_dir=out_dir, sim=sim, station_path=station, sim_config=sim_config, resume=resume,
@@ -101,6 +109,30 @@ def run(
     else:
         result = execute(None if yes else (lambda text: typer.confirm(text, default=False)))
     raise typer.Exit(result.code)
+
+
+def _one_robot(robot: Path | None, station: Path | None, sim: bool, sim_config: Path | None) -> Path | None:
+    """The run's robot file: --robot, the station file's robot and the simulator's must be one robot (exit 2 naming
+    both files and the first difference otherwise); the machine's when --robot is not given (None: built-in).
+
+    The machine's robot is the station file's (one that names none: the built-in robot), or with --sim the
+    simulator's; a --sim run's station file counts only if it names a robot (it is read for its [timing]).
+    """
+    from procedures.cli.sim_station import simulator_robot
+    from procedures.station import BUILT_IN_ROBOT, agreed_robot, named_robot
+
+    sources = [] if robot is None else [(f"--robot {robot}", robot)]
+    try:
+        named = None if station is None else named_robot(station)
+        if named is not None:
+            sources.append((f"the robot of the station file {station} ({named})", named))
+        elif station is not None and not sim:
+            sources.append((f"the station file {station} (it names no robot: {BUILT_IN_ROBOT})", None))
+        if sim:
+            sources.append(simulator_robot(sim_config))
+        return agreed_robot(sources)
+    except ValueError as e:  # StationConfigError, SimConfigError
+        fail(str(e))
 
 
 def _print_prompt_detail(prompt) -> None:

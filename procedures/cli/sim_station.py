@@ -3,7 +3,8 @@
 The runner knows no simulator; it calls this context manager (``RunRequest.sim_station``) for a new run and for
 the resume of a ``--sim`` run alike, so a resumed run re-spawns the simulator on the run's state file. The station
 it hands over is what an operator would write down for a real one: the devices' channels, the CMM's identity and
-stated uncertainty (the simulator's configuration states them), and example acceptance limits.
+stated uncertainty (the simulator's configuration states them), and example acceptance limits. `simulator_robot` is
+the robot the simulator will run, which the run's robot must be (``procedures.station.agreed_robot``).
 """
 
 from __future__ import annotations
@@ -14,9 +15,10 @@ from pathlib import Path
 
 from procedures.runner import SimulatorStartError
 from procedures.signoff import AcceptanceSection
-from procedures.station import StationConfig, station_from_channels
+from procedures.station import BUILT_IN_ROBOT, StationConfig, station_from_channels
 from procedures.timing import TimingSection
 from sim_devices.launcher import SimStartError, spawn_sim_subprocess, stop_sim_subprocess
+from sim_devices.sim_config import load_sim_config
 
 SIM_TIMING = TimingSection(leg_speed_mm_s=5100.0, leg_accel_mm_s2=1e6, settle_s=0.05, cmm_s_per_pose=0.38,
                            move_overhead_s=0.006)
@@ -31,6 +33,17 @@ station's): the demo machine starts at about 1.9 mm and 0.06 deg and fails them,
 its uncertainty (docs/certificate.md). No ISO 9283 limits: a run without `--acceptance iso9283` would leave them
 not tested. They are the built-in paper robot's: a simulated station on another robot file (a small hexapod, a
 twin's machine) sets none. `hilcal run --sim --station FILE` uses FILE's [acceptance] instead."""
+
+
+def simulator_robot(sim_config: Path | None) -> tuple[str, Path | None]:
+    """The robot the simulator of a ``--sim`` run will run: (where it comes from, in words; its robot file, None for
+    the built-in robot). SimConfigError (a ValueError) for a configuration that cannot be read."""
+    if sim_config is None:
+        return f"the simulator's robot (no --sim-config: {BUILT_IN_ROBOT})", None
+    robot = load_sim_config(sim_config).robot  # a relative path is relative to the configuration file
+    if robot is None:
+        return f"the simulator config {sim_config} (it names no robot: {BUILT_IN_ROBOT})", None
+    return f"the robot of the simulator config {sim_config} ({robot})", robot
 
 
 @contextlib.contextmanager
