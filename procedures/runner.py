@@ -225,8 +225,8 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
         robot_name=robot.name, plan_sha256=plan.sha256(), started_at=started_at,
         finished_at=dt.datetime.now(dt.UTC).isoformat(),
         verify_before=_summary(verify_rows), verify_after=_summary(after_rows) if after_rows else None,
-        per_pose_before=_per_pose(verify_rows),
-        per_pose_after=_per_pose(after_rows, len(verify_rows)) if after_rows else None,
+        per_pose_before=_per_pose(verify_rows, len(plan.verify_poses)),
+        per_pose_after=_per_pose(after_rows, len(plan.verify_poses)) if after_rows else None,
         identifications={k: o.identification for k, o in result.outcomes.items()},
         predicted_after={k: o.after for k, o in result.outcomes.items() if o.after is not None},
         chosen=result.chosen,
@@ -251,7 +251,7 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
         drift=drift,
         signoff=signoff,
         adaptive=result.adaptive if isinstance(result.adaptive, dict) and "summary" in result.adaptive else None,
-        warnings=tuple(result.out_of_reach),
+        warnings=(*result.acquisition, *result.out_of_reach),
     )
     json_path, _ = write_run_report(out_dir, report)
     journal.event("report", path=str(json_path))
