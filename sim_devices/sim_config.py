@@ -25,7 +25,7 @@ Example configuration (every key optional; relative paths are relative to the fi
     stated_uncertainty_mm = 0.004   # U (k = 2) per sphere-centre coordinate it states (default 2 x noise_sigma_mm)
     alignment_error_mm = 2.0        # error of the published T_cmm<-base (a station's rough CMM set-up)
     alignment_error_deg = 0.02
-    on_collision = "stop"           # a GoTo or approach through a sphere crashes (default "count": logged, passes)
+    on_collision = "stop"           # a crash latches 2504 (the default; "count": logged, the probe passes)
     probing_speed_mm_s = 10.0       # the probing stroke; probe_time_s (0.05) per touch, travel_speed_mm_s (250)
     [cmm.faults]
     garbage = 0.01

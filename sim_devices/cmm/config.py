@@ -50,10 +50,10 @@ class CmmServerConfig(BaseModel):
                                       "point to the touch (or the whole 2 x search distance on a miss)")
     home_time_s: float = Field(default=10.0, ge=0)
     on_collision: Literal["stop", "count"] = Field(
-        default="count", description="a positioning move (GoTo, PtMeas approach) into a tooling sphere: 'stop' as a "
-        "real CMM (error 2504 Collision, latched, the probe stopped at the surface); 'count': only a GoTo target or "
-        "PtMeas start inside a sphere stops it, a path through one is counted and logged and the probe passes "
-        "(for drivers that do not route around the spheres yet)")
+        default="stop", description="a positioning move (GoTo, PtMeas approach) into a tooling sphere, or a platform "
+        "sphere that strikes the parked probe: 'stop' as a real CMM (error 2504 Collision, latched, the probe stopped "
+        "at the surface); 'count': only a GoTo target or PtMeas start inside a sphere stops it, a path through one "
+        "and a strike are counted and logged and the probe passes (for drivers that do not route around the spheres)")
     pty: bool = True
     tcp_port: int | None = Field(default=None, ge=0, le=65535, description="None: no TCP; 0: ephemeral port")
     outlier_mm: float = Field(default=0.5, gt=0)

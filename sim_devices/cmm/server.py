@@ -83,8 +83,8 @@ class CmmServerHandle:
 
     @property
     def collisions(self) -> int:
-        """Crashes of the probe so far (GoTo or PtMeas approaches into a sphere, illegal touches), each logged as
-        ``cmm_sim.collision``."""
+        """Crashes of the probe so far (GoTo or PtMeas approaches into a sphere, illegal touches, platform spheres that
+        struck the standing probe), each logged as ``cmm_sim.collision``."""
         return self._machine.collisions
 
     @property

@@ -6,10 +6,14 @@ target + s*IJK along -IJK for up to 2*s (s = search distance) and returns the fi
 Gaussian noise; no surface on that path is error 1006 "Surface not found". Every positioning move is a straight
 line from where the probe is (its tip a point): a ``GoTo`` or a PtMeas approach that enters a sphere crashes
 (error 2504 Collision; a PtMeas start point inside a sphere is 1001 Illegal touch), and the probe stops where it
-met the surface. Each crash is counted (``CmmMachine.collisions``) and logged as ``cmm_sim.collision``. Durations
-(travel, the probing stroke at its own speed, a fixed overhead per touch, homing) are real-time figures multiplied
-by ``time_scale`` (0 = instant). ``CmmSession`` is one connection's protocol state, transport-free: it answers
-command lines through a ``send`` callable.
+met the surface. The machine also notices when the platform has moved (at every command, and whenever it asks for
+the sphere centres): a platform sphere whose way from its old to its new centre (the poses between interpolated:
+translation straight, orientation by slerp) passes through the homed probe has struck it (kind "struck"; with
+``on_collision = "stop"`` it latches error 2504, so the next motion command is refused). Each crash is counted
+(``CmmMachine.collisions``) and logged as ``cmm_sim.collision``. Durations (travel, the probing stroke at its own
+speed, a fixed overhead per touch, homing) are real-time figures multiplied by ``time_scale`` (0 = instant).
+``CmmSession`` is one connection's protocol state, transport-free: it answers command lines through a ``send``
+callable.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ from collections.abc import Callable
 
 import numpy as np
 import structlog
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 from hilcal.protocols.cmm import (
     COORDINATE_DECIMALS,
@@ -50,6 +54,10 @@ log = structlog.get_logger(__name__)
 PENETRATION_TOL_MM = 1e-6
 """A move enters a sphere when it comes closer to its centre than the radius less this (a probe stopped on a
 surface may leave it, or move along it)."""
+WAY_STEP_DEG = 0.5
+"""The platform's way between two looks is sampled every this much turn (a sphere 1 m out then strays at most 10 µm
+from the straight steps between the samples)."""
+MAX_WAY_STEPS = 512
 
 
 class MotionAborted(Exception):
@@ -78,25 +86,95 @@ class CmmMachine:
         self.homed = False
         self.position_mm = np.zeros(3)
         self.latched: ErrorCode | None = None
+        self.latched_detail = ""
+        """What latched the error state when no command did (a platform that struck the probe), for the refusals."""
         self.collisions = 0
-        """Crashes so far: GoTo or PtMeas approaches into a sphere and illegal touches (each logged)."""
+        """Crashes so far: GoTo or PtMeas approaches into a sphere, illegal touches and platform spheres that struck the
+        probe (each logged)."""
         self.machine_time_s = 0.0
         """Every command's duration so far, before ``time_scale``."""
         self._rng = np.random.default_rng([config.seed, 0xC33])
-        self._centres: tuple[bytes, np.ndarray] | None = None
+        self._centres: tuple[bytes, np.ndarray, np.ndarray] | None = None
+        """The platform pose the machine last saw (as bytes), the sphere centres for it, and the pose."""
 
     def sphere_centres_mm(self) -> np.ndarray:
         """(6, 3) true sphere centres in the CMM frame: platform spheres first, then base spheres.
 
-        Computed again only when the platform's pose changed (every touch asks; the platform rarely moves).
+        Computed again only when the platform's pose changed (every command and touch asks; the platform rarely
+        moves). Then, with the probe homed, whether a platform sphere struck it on its way (``_check_strikes``).
         """
         pose = self.rig.true_pose()
         key = pose.tobytes()
         if self._centres is None or self._centres[0] != key:
             rot = Rotation.from_euler("ZYX", pose[[5, 4, 3]], degrees=True)
             platform_base = rot.apply(self.robot.platform_spheres) + pose[:3]
-            self._centres = (key, self.rig.to_cmm(np.vstack([platform_base, self.robot.base_spheres])))
+            previous = self._centres
+            self._centres = (key, self.rig.to_cmm(np.vstack([platform_base, self.robot.base_spheres])), pose)
+            if previous is not None and self.homed:
+                self._check_strikes(self._platform_way(previous[2], pose))
         return self._centres[1].copy()
+
+    def _platform_way(self, pose0: np.ndarray, pose1: np.ndarray) -> np.ndarray:
+        """(n + 1, 3, 3) platform sphere centres (CMM frame) on the platform's way from pose0 to pose1: the poses
+        between interpolated (translation straight, orientation by slerp), a sample every ``WAY_STEP_DEG`` of turn.
+
+        The machine sees only the poses at its commands; between them the platform may have moved a long way. This
+        way is exact for a move in a straight line at a steady turn, and near any move between two nearby poses.
+        """
+        rots = Rotation.from_euler("ZYX", np.vstack([pose0, pose1])[:, [5, 4, 3]], degrees=True)
+        turn_deg = float(np.degrees((rots[0].inv() * rots[1]).magnitude()))
+        n = int(min(MAX_WAY_STEPS, max(1, np.ceil(turn_deg / WAY_STEP_DEG))))
+        t = np.linspace(0.0, 1.0, n + 1)
+        R = Slerp([0.0, 1.0], rots)(t).as_matrix()
+        shift = pose0[:3] + t[:, None] * (pose1[:3] - pose0[:3])
+        points = np.einsum("nij,kj->nki", R, self.robot.platform_spheres) + shift[:, None, :]
+        return self.rig.to_cmm(points.reshape(-1, 3)).reshape(points.shape)
+
+    def _check_strikes(self, way: np.ndarray) -> None:
+        """The platform carried its spheres along ``way`` (``_platform_way``) since the machine last looked.
+
+        A sphere that came closer to the probe than its radius on one of the straight steps between the samples
+        struck the probe: ``_strike``. A probe already inside a sphere's old place is not struck again.
+        """
+        r = self.robot.sphere_radius_mm
+        for index in range(way.shape[1]):
+            a, b = way[:-1, index], way[1:, index]
+            p = self.position_mm
+            if np.linalg.norm(p - a[0]) < r - PENETRATION_TOL_MM:
+                continue
+            d = b - a
+            t = np.clip(np.sum((p - a) * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-300), 0.0, 1.0)
+            if np.min(np.linalg.norm(a + t[:, None] * d - p, axis=1)) < r - PENETRATION_TOL_MM:
+                self._strike(index, a[0], b[-1])
+
+    def _strike(self, index: int, c0: np.ndarray, c1: np.ndarray) -> None:
+        """Platform sphere ``index``, moving from centre c0 to c1, struck the probe: count and log it, and with
+        ``on_collision = "stop"`` latch 2504. A probe the sphere now covers is left on its surface (pushed aside)."""
+        p = self.position_mm.copy()
+        stop = self.config.on_collision == "stop"
+        self.collisions += 1
+        log.warning("cmm_sim.collision", kind="struck", command=None, code=int(ErrorCode.COLLISION), stopped=stop,
+                    sphere=index, sphere_name=sphere_name(index), from_mm=np.round(c0, 4).tolist(),
+                    to_mm=np.round(c1, 4).tolist(), contact_mm=np.round(p, 4).tolist(), collisions=self.collisions)
+        r = self.robot.sphere_radius_mm
+        gap = p - c1
+        dist = float(np.linalg.norm(gap))
+        if dist < r:
+            away = gap / dist if dist > 0 else (c0 - c1) / np.linalg.norm(c0 - c1)
+            self.position_mm = c1 + r * away
+        if stop:
+            where = ", ".join(f"{v:.3f}" for v in p)
+            self.latch(ErrorCode.COLLISION, f"the platform moved {sphere_name(index)} into the probe at ({where})")
+
+    def latch(self, code: ErrorCode | None, detail: str = "") -> None:
+        """Enter the error state with ``code`` (None: leave it); ``detail`` goes into the refusals that follow."""
+        self.latched, self.latched_detail = code, detail if code is not None else ""
+
+    def refuse_if_struck(self) -> None:
+        """Look at the platform now; MotionAborted if it struck the probe since this command was accepted."""
+        self.sphere_centres_mm()
+        if self.latched is not None:
+            raise MotionAborted(self.latched, self.latched_detail)
 
     def _travel_s(self, to_mm: np.ndarray) -> float:
         return float(np.linalg.norm(to_mm - self.position_mm)) / self.config.travel_speed_mm_s
@@ -155,6 +233,7 @@ class CmmMachine:
     def goto(self, target: np.ndarray) -> float:
         """Move to target; a path into a sphere is a collision (with ``on_collision = "count"`` only a target
         inside one stops the machine, a path through one is counted and logged)."""
+        self.refuse_if_struck()
         contact = self.first_contact(self.position_mm, target)
         if contact is not None:
             stop = self.config.on_collision == "stop" or self._inside(target)
@@ -175,6 +254,7 @@ class CmmMachine:
         norm = float(np.linalg.norm(ijk))
         if norm == 0:
             raise MotionAborted(ErrorCode.VECTOR_HAS_NO_NORM)
+        self.refuse_if_struck()
         n = ijk / norm
         start = target + search_mm * n
         contact = self.first_contact(self.position_mm, start)
@@ -261,8 +341,8 @@ class CmmSession:
                 duration, data = action(plan)
         except MotionAborted as abort:
             with self.machine.lock:
-                if abort.code in LATCHING_ERRORS:
-                    self.machine.latched = abort.code
+                if abort.code in LATCHING_ERRORS and self.machine.latched is None:  # else struck meanwhile
+                    self.machine.latch(abort.code)
             final, duration = _error_body(abort.code, cmd.call.name, abort.detail), abort.duration_s
         else:
             final = str(Marker.DONE)
@@ -304,15 +384,18 @@ class CmmSession:
         if not self.in_session and name not in SESSION_FREE_COMMANDS:
             raise CommandRejected("", ErrorCode.BAD_CONTEXT, "no session (StartSession first)")
         m = self.machine
+        with m.lock:
+            m.sphere_centres_mm()  # the platform may have moved since the last command (and struck the probe)
         try:
             if name in (Command.START_SESSION, Command.END_SESSION, Command.HOME, Command.CLEAR_ALL_ERRORS):
                 if call.args:
                     raise ValueError(f"{name} takes no arguments")
             if name in MOTION_COMMANDS:
                 with m.lock:
-                    latched, homed = m.latched, m.homed
+                    latched, detail, homed = m.latched, m.latched_detail, m.homed
                 if latched is not None:
-                    raise CommandRejected("", ErrorCode.TRANSACTION_ABORTED, f"after error {int(latched):04d}")
+                    raise CommandRejected("", ErrorCode.TRANSACTION_ABORTED,
+                                          f"after error {int(latched):04d}" + (f": {detail}" if detail else ""))
                 if name is not Command.HOME and not homed:
                     raise CommandRejected("", ErrorCode.BAD_CONTEXT, "machine not homed (Home first)")
             match name:
@@ -362,7 +445,7 @@ class CmmSession:
     def _start_session(self, _plan: FaultPlan) -> tuple[float, list[str]]:
         self.in_session = True
         self.search_mm = DEFAULT_SEARCH_DISTANCE_MM
-        self.machine.latched = None
+        self.machine.latch(None)
         return 0.0, []
 
     def _end_session(self, _plan: FaultPlan) -> tuple[float, list[str]]:
@@ -370,7 +453,7 @@ class CmmSession:
         return 0.0, []
 
     def _clear(self, _plan: FaultPlan) -> tuple[float, list[str]]:
-        self.machine.latched = None
+        self.machine.latch(None)
         return 0.0, []
 
     def _error_info(self, call: Call) -> Callable[[FaultPlan], tuple[float, list[str]]]:

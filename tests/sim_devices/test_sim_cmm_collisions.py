@@ -196,8 +196,9 @@ def test_a_touch_costs_travel_probing_stroke_and_overhead(rig: SimulatedRig) -> 
 
 
 def test_the_collision_is_in_the_simulators_log(tmp_path) -> None:
-    """`hilcal sim` as `hilcal run --sim` spawns it, log in a file: a crash is there, and the count at the stop."""
-    (tmp_path / "sim.toml").write_text('[rig]\nseed = 7\n[cmm]\ntime_scale = 0.0\non_collision = "stop"\n')
+    """`hilcal sim` as `hilcal run --sim` spawns it, log in a file: a crash is there, and the count at the stop. The
+    configuration leaves `on_collision` at its default, which stops the probe as a real CMM."""
+    (tmp_path / "sim.toml").write_text('[rig]\nseed = 7\n[cmm]\ntime_scale = 0.0\n')
     log_path = tmp_path / "sim.log"
     proc, channels = spawn_sim_subprocess(tmp_path / "sim.toml", log_path=log_path)
     try:
