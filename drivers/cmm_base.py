@@ -145,12 +145,15 @@ class CmmInterface(abc.ABC):
         predicted is searched for. SphereMeasurementError when too few good points remain, the free-fit radius is
         off by more than ``radius_tol_mm``, or no search finds the sphere. A centre more than ``prediction_tol_mm``
         from where its probe pattern was laid out is measured once more around the fit (the first pass is kept as
-        ``superseded``).
+        ``superseded``). The probe ends above the sphere, clear of it for whatever move comes next.
         """
         up_v = np.asarray(up, dtype=float)
         bound = self.probing.default_bound_mm if bound_mm is None else bound_mm
         pred = SpherePrediction(np.asarray(nominal_centre_mm, dtype=float), bound, up_v / np.linalg.norm(up_v))
-        return Prober(self).measure_sphere(pred, radius_mm)
+        prober = Prober(self)
+        measured = prober.measure_sphere(pred, radius_mm)
+        prober.leave(measured, pred.up)
+        return measured
 
     def measure_pose(self, robot: Robot, alignment: np.ndarray, expected_pose: np.ndarray | None = None,
                      pose_cov: np.ndarray | None = None, alignment_tolerance: tuple[float, float] | None = None,

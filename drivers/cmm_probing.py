@@ -115,6 +115,11 @@ class Prober:
         second = self._pattern(first.centre_mm, radius_mm, self.cfg.least_bound_mm, pred.up, others)
         return _with(second, search=search, nominal=pred.centre_mm, superseded=first)
 
+    def leave(self, m: SphereMeasurement, up: np.ndarray) -> None:
+        """Back to clearance above a sphere just measured: the next move, which knows nothing of it, starts clear."""
+        region = Ball(m.centre_mm, m.radius_mm + self.cfg.route_margin_mm)
+        self._go(m.centre_mm + (m.radius_mm + self.cfg.clearance_mm) * up, [region])
+
     def _locate(self, pred: SpherePrediction, r: float, bound: float, others: list[Ball]) -> SphereSearch:
         """Descend from above on widening lattices until a touch, then touch the cap around it (module docstring)."""
         cfg = self.cfg
