@@ -51,11 +51,13 @@ class Acquisition:
     @classmethod
     def start(cls, robot: Robot, a_mm: np.ndarray, b_mm: np.ndarray, l0_mm: np.ndarray, rows: list[dict],
               tightening: float = 1.0) -> Acquisition:
-        """The model from the priors, refitted on the rows measured already (a resumed run's journal)."""
-        belief = prior_belief(a_mm, b_mm, l0_mm, Priors.of(robot).tightened(tightening))
+        """The model from the priors, refitted on the rows measured already (a resumed run's journal, whose first row
+        is checked again: the same notes, or the same stop)."""
+        acq = cls(robot, prior_belief(a_mm, b_mm, l0_mm, Priors.of(robot).tightened(tightening)))
         if rows:
-            belief = refit(belief, np.array([r["legs"] for r in rows]), np.array([r["meas"] for r in rows]))
-        return cls(robot, belief)
+            acq._first_pose(np.asarray(rows[0]["legs"], dtype=float), np.asarray(rows[0]["meas"], dtype=float))
+            acq.belief = refit(acq.belief, np.array([r["legs"] for r in rows]), np.array([r["meas"] for r in rows]))
+        return acq
 
     @property
     def geometry(self) -> Geometry:

@@ -51,6 +51,7 @@ def test_a_leg_far_off_at_the_first_pose(dl0_mm: float, stops: bool) -> None:
     acq.learn(row)
     [note] = acq.notes
     assert note.startswith("leg 2 reads 120.00 mm short at the first pose") and "measured as it is" in note
+    assert Acquisition.start(ROBOT, ROBOT.a, ROBOT.b, ROBOT.l0, [row]).notes == [note]  # a resumed run says it too
 
 
 def test_a_pose_the_model_puts_beyond_a_leg_s_travel_is_named() -> None:
