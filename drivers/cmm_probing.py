@@ -177,6 +177,8 @@ class Prober:
         avoid = [*others, Ball(centre, r + bound + cfg.route_margin_mm)]
         targets, normals = sphere_probe_pattern(centre, r, up, cfg.n_ring, cfg.elevations_deg)
         self._go(centre + (r + max(cfg.clearance_mm, search + cfg.search_margin_mm)) * normals[0], avoid)
+        # The pole last: the probe then leaves the sphere from above it, clear of it on the way to the next one.
+        targets, normals = np.roll(targets, -1, axis=0), np.roll(normals, -1, axis=0)
         records: list[ProbeRecord] = []
         good: list[tuple[int, int]] = []
         missed: list[int] = []

@@ -39,13 +39,17 @@ def segment_distance(a: np.ndarray, b: np.ndarray, point: np.ndarray) -> float:
 
 def first_blocking(a: np.ndarray, b: np.ndarray, balls: list[Ball]) -> Ball | None:
     """The ball the segment a-b meets first (nearest to a along the segment), or None."""
-    hits = []
-    for ball in balls:
-        if segment_distance(a, b, ball.centre_mm) < ball.radius_mm:
-            d = b - a
-            length2 = float(d @ d) or 1.0
-            hits.append((float(np.clip((ball.centre_mm - a) @ d / length2, 0.0, 1.0)), id(ball), ball))
-    return min(hits, key=lambda h: h[:2])[2] if hits else None
+    if not balls:
+        return None
+    centres = np.array([ball.centre_mm for ball in balls])
+    radii = np.array([ball.radius_mm for ball in balls])
+    d = b - a
+    length2 = float(d @ d) or 1.0
+    s = np.clip((centres - a) @ d / length2, 0.0, 1.0)
+    hit = np.linalg.norm(a + s[:, None] * d - centres, axis=1) < radii
+    if not hit.any():
+        return None
+    return balls[int(np.flatnonzero(hit)[np.argmin(s[hit])])]
 
 
 def _arc(a: np.ndarray, b: np.ndarray, ball: Ball, up: np.ndarray) -> list[np.ndarray]:
