@@ -6,7 +6,10 @@ compensation block, the upload is one set: the geometry fitted together with the
 corrects what the controller can correct. Without the block the upload is geometry only, and what the controller
 cannot hold is said, faults first, with what to set by hand. A geometry the geometric fit makes implausible because it
 absorbed a set-up fault (a scale error taken up by 30 mm of joint errors) is replaced by the joint fit's, which the
-diagnosis explains; a geometry that stays implausible is refused with the diagnosis' sentences.
+diagnosis explains. A geometry beyond the plausible bounds that the held-out verification poses vouch for (the model
+holding it predicts them within SUPPORT_FACTOR of the noise yardstick) is a machine built that far from its robot
+file: it is named as a gross assembly fault and uploaded. A geometry that stays implausible is refused with the
+diagnosis' sentences.
 """
 
 from __future__ import annotations
@@ -22,6 +25,10 @@ from hilcal.leg_compensation import LegCompensation
 from hilcal.metrics import AccuracySummary
 from hilcal.recording import Recording
 from hilcal.robot import Robot
+
+SUPPORT_FACTOR = 3.0
+"""Geometric errors beyond the plausible bounds are uploaded when the model holding them predicts the held-out verify
+poses to within this many times the noise yardstick: the poses, not the bound, say how the machine is built."""
 
 WHAT_IS_CORRECTED = {
     "sensor_scale": "the reading scale of each leg",
@@ -106,6 +113,24 @@ def _said(correction: Any, check: str, loaded: bool) -> str:
         f"{core}: the upload corrects {what}."
 
 
+def _vouched(violations: list[str], held_out: AccuracySummary | None, diag: Any) -> str | None:
+    """The finding that names bound violations the held-out poses vouch for (None: they do not, or there are none)."""
+    noise = None if diag is None or diag.noise.chosen is None else diag.noise.chosen.position_mm
+    if not violations or noise is None or held_out is None or not held_out.position_mm.rms <= SUPPORT_FACTOR * noise:
+        return None
+    return (f"Gross assembly fault: {'; '.join(violations)}; the model holding them predicts the {held_out.n_poses} "
+            f"held-out verification poses to {1000 * held_out.position_mm.rms:.1f} µm RMS, within {SUPPORT_FACTOR:g}x "
+            f"the noise yardstick ({1000 * noise:.1f} µm): the machine is built that far from its robot file; the "
+            "upload corrects it; check the assembly and the robot file.")
+
+
+def _split(problems: list[str], held_out: AccuracySummary | None, diag: Any) -> tuple[list[str], str | None]:
+    """The problems left once the bound violations the held-out poses vouch for are a finding instead."""
+    bounds = [p for p in problems if "exceeds the plausible" in p]
+    finding = _vouched(bounds, held_out, diag)
+    return ([p for p in problems if p not in bounds] if finding else problems), finding
+
+
 def decide(rec: Recording, robot: Robot, outcome: CalibrationOutcome, info: ControllerInfo, *, physics: bool,
            joint_bound_mm: float = 10.0, offset_bound_mm: float = 20.0) -> PhysicsDecision:
     """The upload's geometry and block for this run (see the module docstring)."""
@@ -121,8 +146,9 @@ def decide(rec: Recording, robot: Robot, outcome: CalibrationOutcome, info: Cont
     diag = diagnose(rec, robot)
     findings = list(diag.summary)
     if not diag.steps:
+        geo_problems, gross = _split(geo_problems, without, diag)
         return PhysicsDecision(
-            geo.x[:42].copy(), "the geometric fit", problems=geo_problems, findings=findings,
+            geo.x[:42].copy(), "the geometric fit", problems=geo_problems, findings=[*findings, *filter(None, [gross])],
             corrects=["Nothing beyond the geometry: the residual is explained by the geometry and the noise, so the "
                       "controller's compensation block stays as it is."],
             predicted_with=without, predicted_without=without, diagnosis=diag)
@@ -137,6 +163,9 @@ def decide(rec: Recording, robot: Robot, outcome: CalibrationOutcome, info: Cont
                                  "controller's feedback wiring before any upload")
     if not diag.final_fit.converged:
         joint_problems.insert(0, f"the fit with the effects did not converge: {diag.final_fit.message}")
+    joint_problems, gross = _split(joint_problems, diag.compensation_after or diag.after, diag)
+    if gross:
+        findings.append(gross)
     checks = {n.effect: n.check for n in diag.named}
     decision = PhysicsDecision(loadable.geometry_x, "fitted together with the effects", problems=joint_problems,
                                findings=findings, predicted_without=without, diagnosis=diag, loadable=loadable)
