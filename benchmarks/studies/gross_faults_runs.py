@@ -5,7 +5,8 @@ on the simulated rig: one or two legs' transducer gradient wrong by 0.5-9 %, eve
 N(0, s) with s 1-4 mm, the CMM station's published alignment off by 5-50 mm, or a dead transducer. Each robot also
 runs its healthy rig (the simulator's defaults: the paper's Table 2 errors mapped onto the robot, a 2 mm alignment
 error), which the faulty runs are compared with. Every run uses rig seed 1 and near-instant devices, as the other
-run-level studies do.
+run-level studies do; the simulated CMM keeps its own machine clock all the same, which sim.log's `cmm_sim.stopped`
+line gives, and every measured pose's journal row says how many touches and searches it took.
 
 ``run_case(case, work)`` runs one case in its own folder and returns its figures (a test can call it on one
 case); ``summarize(run_dir, code, output)`` reads them from a finished run's folder.
@@ -38,7 +39,9 @@ RIG_SEED = 1
 FAST: dict[str, Any] = {"controller": {"time_scale": 100000.0}, "cmm": {"time_scale": 0.0},
                         "rig": {"temperature": {"drift_k_per_h": 0.0, "amplitude_k": 0.0}}}
 """The near-instant servo and CMM of the other run-level studies (physics_study.py, adaptive_run_study.py): the run
-costs its engine, driver and protocol work; the rig's temperature is held (its clock follows the servo's)."""
+costs its engine, driver and protocol work; the rig's temperature is held (its clock follows the servo's). The
+simulated CMM's machine clock is not scaled: `cmm_sim.stopped ... machine_time_s` in sim.log is what its commands
+would have taken (docs/protocols.md, CMM simulator)."""
 GRADIENTS_PCT = (0.5, 1.0, 2.0, 4.0, 6.0, 9.0)
 ONE_LEG = {0: 1.0}
 """One leg: leg 1 reads long (reported stroke = true stroke x (1 + g))."""
@@ -50,8 +53,11 @@ ASSEMBLY_SEED = 33
 random_errors(ASSEMBLY_SEED + k, s), k the size's index; the same draws on every robot."""
 ALIGNMENT_MM = (5.0, 10.0, 20.0, 50.0)
 DEAD_LEGS = [4]
-DEAD_KEY = "dead_transducer_legs"
 COLLISION_EVENT = "cmm_sim.collision"
+STOPPED_EVENT = "cmm_sim.stopped"
+MACHINE_TIME = re.compile(r"\bmachine_time_s=([-+0-9.eE]+)")
+ANSI = re.compile(r"\x1b\[[0-9;]*m")
+"""The simulator's log (structlog's console lines, perhaps coloured): the colour codes are dropped before reading."""
 RUN_TIMEOUT_S = 1800.0
 QUICK = ("*/healthy", "*/gradient-1leg-4pc", "paper/assembly-3mm", "paper/alignment-20mm", "paper/dead-transducer")
 RUN_LINE = re.compile(r"^run \d{8}T\d{6}Z-[0-9a-f]+:? (.+)$", re.MULTILINE)
@@ -69,8 +75,6 @@ class Case:
     sim: dict[str, Any] = field(default_factory=dict)
     assembly_sigma_mm: float | None = None
     assembly_seed: int | None = None
-    needs: str | None = None
-    """A simulator configuration key the case needs; without it the case is reported as not supported yet."""
 
     @property
     def id(self) -> str:
@@ -105,7 +109,7 @@ def cases(robots: Iterable[str] = tuple(ROBOTS)) -> list[Case]:
             out.append(Case(robot, f"alignment-{_pc(mm)}mm", "alignment", f"station alignment off {mm:g} mm",
                             {"cmm": {"alignment_error_mm": mm}}))
         out.append(Case(robot, "dead-transducer", "dead", f"dead transducer (leg {DEAD_LEGS[0]})",
-                        {"controller": {DEAD_KEY: DEAD_LEGS}}, needs=DEAD_KEY))
+                        {"controller": {"dead_transducer_legs": DEAD_LEGS}}))
     return out
 
 
@@ -116,23 +120,6 @@ def select(all_cases: list[Case], patterns: Iterable[str]) -> list[Case]:
     chosen = {c.id for c in all_cases if any(fnmatch(c.id, p) for p in pats)}
     chosen |= {f"{c.robot}/healthy" for c in all_cases if c.id in chosen}
     return [c for c in all_cases if c.id in chosen]
-
-
-def _source_mentions(text: str, under: str = "sim_devices") -> bool:
-    """Whether the simulator's source (read as text, so a half-edited module cannot stop the study) mentions it."""
-    return any(text in p.read_text(errors="replace") for p in (ROOT / under).rglob("*.py"))
-
-
-def collisions_logged() -> bool:
-    """Whether the simulated CMM logs its collisions (the event COLLISION_EVENT in sim.log)."""
-    return _source_mentions(COLLISION_EVENT)
-
-
-def unsupported(case: Case) -> str | None:
-    """Why the simulator cannot run this case yet, or None."""
-    if case.needs and not _source_mentions(case.needs):
-        return f"not supported yet: the simulator has no [controller] {case.needs}"
-    return None
 
 
 def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
@@ -185,48 +172,77 @@ def final_words(output: str) -> str:
     return lines[-1] if lines else ""
 
 
-def _journal(run_dir: Path) -> tuple[str | None, dict[str, int]]:
-    """The journal's run status and its measured rows per phase (read only)."""
+def _journal(run_dir: Path) -> tuple[str | None, dict[str, int], list[dict[str, Any]]]:
+    """The journal's run status, its measured rows per phase and every measured row's detail (read only)."""
     path = run_dir / "journal.sqlite"
     if not path.exists():
-        return None, {}
+        return None, {}, []
     db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
     try:
         row = db.execute("SELECT status FROM run").fetchone()
         rows = dict(db.execute("SELECT phase, COUNT(*) FROM measurements GROUP BY phase").fetchall())
-    except sqlite3.Error:
-        return None, {}
+        details = [json.loads(d or "{}") for (d,) in db.execute("SELECT detail_json FROM measurements ORDER BY seq")]
+    except (sqlite3.Error, ValueError):
+        return None, {}, []
     finally:
         db.close()
-    return (row[0] if row else None), rows
+    return (row[0] if row else None), rows, details
+
+
+def probing(details: list[dict[str, Any]]) -> dict[str, Any]:
+    """The CMM's work per measured pose from the journal rows' detail (drivers/cmm_probing.py writes `touches`,
+    `searched_spheres`, `search_touches` and `largest_search_offset_mm` with every measured pose): the touches per
+    pose, the spheres searched for, the touches of those searches and the largest offset a search found a sphere at,
+    over the rows that carry them (None when none does)."""
+    rows = [d for d in details if isinstance(d, dict) and "touches" in d]
+    if not rows:
+        return {"touches_per_pose": None, "searched_spheres": None, "search_touches": None,
+                "largest_search_offset_mm": None, "detail_rows": 0}
+    return {"touches_per_pose": sum(float(d["touches"]) for d in rows) / len(rows),
+            "searched_spheres": sum(int(d.get("searched_spheres") or 0) for d in rows),
+            "search_touches": sum(int(d.get("search_touches") or 0) for d in rows),
+            "largest_search_offset_mm": max(float(d.get("largest_search_offset_mm") or 0.0) for d in rows),
+            "detail_rows": len(rows)}
+
+
+def _sim_log(run_dir: Path) -> list[str] | None:
+    log = run_dir / "sim.log"
+    return ANSI.sub("", log.read_text(errors="replace")).splitlines() if log.exists() else None
 
 
 def count_collisions(run_dir: Path) -> int | None:
-    """COLLISION_EVENT lines in the run's sim.log; None when the simulator does not log collisions."""
-    if not collisions_logged():
-        return None
-    log = run_dir / "sim.log"
-    if not log.exists():
-        return None
-    return sum(COLLISION_EVENT in line for line in log.read_text(errors="replace").splitlines())
+    """COLLISION_EVENT lines in the run's sim.log; None when the run wrote no sim.log."""
+    lines = _sim_log(run_dir)
+    return None if lines is None else sum(COLLISION_EVENT in line for line in lines)
+
+
+def cmm_machine_time(run_dir: Path) -> float | None:
+    """The simulated CMM's machine clock when it stopped: `machine_time_s` of STOPPED_EVENT in the run's sim.log
+    (the sum of every command's unscaled duration); None when the log has no such line."""
+    found = [m.group(1) for line in _sim_log(run_dir) or () if STOPPED_EVENT in line
+             for m in [MACHINE_TIME.search(line)] if m]
+    return float(found[-1]) if found else None
 
 
 def summarize(run_dir: Path, code: int | None, output: str) -> dict[str, Any]:
     """A finished run's figures from its folder: report.json (status, verification after, the physics step's
-    prediction, the measure phase's time), the journal (status and rows when there is no report), sim.log
-    (collisions) and what it printed."""
+    prediction), the journal (status, rows per phase and the CMM's work per pose), sim.log (collisions and the CMM's
+    machine time) and what it printed."""
     report_path = run_dir / "report.json"
     report = json.loads(report_path.read_text()) if report_path.exists() else {}
-    status, rows = _journal(run_dir)
+    status, rows, details = _journal(run_dir)
     phases = (report.get("machine_time") or {}).get("phases") or {}
     measure = phases.get("measure") or {}
     physics = report.get("physics") or {}
     verification = report.get("verification") or {}
+    machine_s = cmm_machine_time(run_dir)
+    n_rows = sum(rows.values())
     return {
         "code": code, "status": report.get("status") or status, "report": bool(report), "rows": rows,
         "said": final_words(output), "collisions": count_collisions(run_dir),
-        "measure_actual_s": measure.get("actual_s"), "measure_estimated_s": measure.get("estimated_s"),
-        "measure_poses_planned": measure.get("n_poses"),
+        "cmm_machine_s": machine_s, "cmm_s_per_pose": machine_s / n_rows if machine_s is not None and n_rows else None,
+        **probing(details),
+        "measure_actual_s": measure.get("actual_s"), "measure_poses_planned": measure.get("n_poses"),
         "before": verification.get("before"), "after": verification.get("after"),
         "predicted": physics.get("predicted_with_physics"), "geometry_only": physics.get("predicted_geometry_only"),
         "effects": physics.get("effects") or [], "block": bool(physics.get("block")),
@@ -248,13 +264,9 @@ def _stop(proc: subprocess.Popen[str]) -> None:
 def run_case(case: Case, work: Path, timeout_s: float = RUN_TIMEOUT_S) -> dict[str, Any]:
     """Run one case as `hilcal run --sim --yes` in ``work/<robot>__<name>`` and return its figures.
 
-    The keys: the case (id, robot, name, kind, label), whether it ran (``supported``), the exit code, the
-    ``summarize`` figures, the wall-clock seconds and the command."""
+    The keys: the case (id, robot, name, kind, label), the exit code, the ``summarize`` figures, the wall-clock
+    seconds and the command."""
     head = {"id": case.id, "robot": case.robot, "name": case.name, "kind": case.kind, "label": case.label}
-    why = unsupported(case)
-    if why:
-        return {**head, "supported": False, "code": None, "status": None, "said": why, "seconds": 0.0,
-                "collisions": None, "rows": {}}
     folder = work / case.id.replace("/", "__")
     folder.mkdir(parents=True, exist_ok=True)
     errors = write_assembly_errors(case, folder) if case.assembly_sigma_mm is not None else None
@@ -271,11 +283,9 @@ def run_case(case: Case, work: Path, timeout_s: float = RUN_TIMEOUT_S) -> dict[s
         _stop(proc)
         output, _ = proc.communicate()
     (folder / "output.txt").write_text(output)
-    result = {**head, "supported": True, **summarize(folder / "run", proc.returncode, output),
+    result = {**head, **summarize(folder / "run", proc.returncode, output),
               "seconds": time.perf_counter() - t0, "timed_out": timed_out,
               "command": "hilcal " + " ".join(cmd[3:]).replace(str(folder), "DIR")}
-    if case.needs and proc.returncode == 2 and case.needs in output and "Extra inputs" in output:
-        result.update(supported=False, said=f"not supported yet: the simulator refuses [controller] {case.needs}")
     if timed_out:
         result["said"] = f"timed out after {timeout_s:.0f} s (stopped with Ctrl-C): {result['said']}"
     return result
