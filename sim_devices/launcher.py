@@ -44,24 +44,34 @@ class SimStartError(RuntimeError):
 
 
 def _describe(channels: dict[str, Any], handle: SimHandle) -> str:
-    T = np.asarray(channels["cmm_alignment"])
-    rows = "\n".join("    [" + ", ".join(f"{v:12.4f}" for v in row) + "]" for row in T)
-    cmm, rig = channels["cmm"], handle.config.rig
+    rig = handle.config.rig
     lines = [
         f"hilcal simulator: robot {channels['robot']}, errors {rig.errors}, seed {rig.seed}",
         f"  CAN (SLCAN)   {channels['can']['channel']}   "
         f"(can.Bus(interface='slcan', channel='{channels['can']['channel']}', sleep_after_open=0))",
         f"  Modbus TCP    {channels['modbus']['host']}:{channels['modbus']['port']} "
         f"(device id {channels['modbus']['device_id']})",
-        f"  CMM           {cmm['url']}" + (f"   or {cmm['socket_url']}" if cmm["socket_url"] else ""),
-        "  CMM alignment T_cmm<-base (approximate, as a station's CMM set-up gives it):",
-        rows,
     ]
+    if "cmm" in channels:
+        cmm = channels["cmm"]
+        lines += [f"  CMM           {cmm['url']}" + (f"   or {cmm['socket_url']}" if cmm["socket_url"] else ""),
+                  "  CMM alignment T_cmm<-base (approximate, as a station's CMM set-up gives it):",
+                  _rows(channels["cmm_alignment"])]
+    if "tracker" in channels:
+        tracker = channels["tracker"]
+        mpe = f"±({tracker['mpe_constant_um']:g} µm + {tracker['mpe_per_m_um']:g} µm/m)"
+        lines += [f"  tracker       {tracker['address']}   (Leica emScon over TCP; MPE {mpe})",
+                  "  tracker alignment T_tracker<-base (approximate, as a station's tracker set-up gives it):",
+                  _rows(channels["tracker_alignment"])]
     if channels["state_file"]:
         restored = "restored" if handle.restored else "new"
         lines.append(f"  state file    {channels['state_file']} ({restored})")
     lines.append("Ctrl-C (SIGINT) or SIGTERM stops the simulator.")
     return "\n".join(lines)
+
+
+def _rows(matrix: list[list[float]]) -> str:
+    return "\n".join("    [" + ", ".join(f"{v:12.4f}" for v in row) + "]" for row in np.asarray(matrix))
 
 
 def run_sim_process(config: SimConfig, as_json: bool, *, stdin_watch: bool = False) -> int:
@@ -109,18 +119,22 @@ def _configure_logging(verbose: bool) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m sim_devices.launcher [--config FILE] [--json] [--state-file PATH] [--seed N]``."""
+    """``python -m sim_devices.launcher [--config FILE] [--json] [--state-file PATH] [--seed N]
+    [--instrument cmm|tracker]``."""
     parser = argparse.ArgumentParser(prog="python -m sim_devices.launcher", description=__doc__.split("\n")[0])
     parser.add_argument("--config", type=Path, help="simulator TOML file (default: built-in settings)")
     parser.add_argument("--json", action="store_true", help="print the channels as one JSON line")
     parser.add_argument("--state-file", type=Path, help="keep the controller and rig state in this file")
     parser.add_argument("--seed", type=int, help="rig seed (overrides the file)")
+    parser.add_argument("--instrument", choices=("cmm", "tracker"), help="the measuring instrument (overrides the "
+                        "file; default: cmm)")
     parser.add_argument("--stdin-watch", action="store_true", help="stop when stdin closes (spawning process gone)")
     parser.add_argument("--verbose", "-v", action="store_true", help="structured logs on stderr")
     args = parser.parse_args(argv)
     _configure_logging(args.verbose)
     try:
-        config = load_sim_config(args.config, state_file=args.state_file, seed=args.seed)
+        config = load_sim_config(args.config, state_file=args.state_file, seed=args.seed,
+                                 instrument=args.instrument)
     except SimConfigError as err:
         print(f"error: {err}", file=sys.stderr, flush=True)
         return 2

@@ -1,9 +1,11 @@
-"""The ``hilcal sim`` configuration: robot, rig truth, controller, CMM and state file, read from TOML and validated.
+"""The ``hilcal sim`` configuration: robot, rig truth, controller, CMM or laser tracker, and state file, read from TOML
+and validated.
 
 Example configuration (every key optional; relative paths are relative to the file)::
 
     robot = "robots/plant3.toml"    # default: the built-in paper Table 1 robot
     state_file = "sim_state.json"   # default: no persistence
+    instrument = "cmm"              # or "tracker" (hilcal sim --instrument tracker): the laser tracker instead
 
     [rig]                           # SimulatedRig truth: seed and errors, plus any RigConfig field
     seed = 0
@@ -29,13 +31,30 @@ Example configuration (every key optional; relative paths are relative to the fi
     probing_speed_mm_s = 10.0       # the probing stroke; probe_time_s (0.05) per touch, travel_speed_mm_s (250)
     [cmm.faults]
     garbage = 0.01
+
+    [tracker]                       # TrackerServerConfig (time_scale defaults to 0.0005 here)
+    station = { x_mm = 6000.0, y_mm = -1500.0, z_mm = 1800.0, yaw_deg = 165.0 }  # its frame in the base frame
+    mpe_constant_um = 15.0          # MPE U = ±(15 µm + 6 µm/m): the noise is U/2 along and across the beam
+    mpe_per_m_um = 6.0
+    search_radius_mm = 50.0         # the ATR search radius at power-up
+    alignment_error_mm = 2.0        # error of the published T_tracker<-base (a station's rough set-up)
+    alignment_error_deg = 0.02
+    [tracker.air]                   # the true air (the tracker corrects for what the client sets)
+    temperature_c = 20.0
+    pressure_hpa = 1013.25
+    humidity_pct = 50.0
+    [[tracker.obstacles]]           # spheres no beam passes (base frame)
+    centre_mm = [3000.0, -800.0, 1500.0]
+    radius_mm = 300.0
+    [tracker.faults]
+    beam_break = 0.01
 """
 
 from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -45,6 +64,7 @@ from hilcal.robot import Robot
 from sim_devices.cmm.config import CmmServerConfig
 from sim_devices.controller.state_machine import ControllerSimConfig
 from sim_devices.rig.config import BUILTIN_ERROR_SETS, GeometryErrors, RigConfig, load_errors
+from sim_devices.tracker.config import TrackerServerConfig
 
 log = structlog.get_logger(__name__)
 
@@ -118,6 +138,27 @@ class SimCmmConfig(CmmServerConfig):
         return CmmServerConfig.model_validate(data)
 
 
+class SimTrackerConfig(TrackerServerConfig):
+    """TrackerServerConfig with fast defaults and the error of the published tracker alignment (a station's rough
+    set-up, as for the CMM)."""
+
+    time_scale: float = Field(default=0.0005, ge=0, description="multiplies every tracker duration; 0 = instant")
+    alignment_error_mm: float = Field(default=2.0, ge=0, description="offset of the published T_tracker<-base")
+    alignment_error_deg: float = Field(default=0.02, ge=0, description="rotation error of the published alignment")
+
+    def identity(self) -> str:
+        """The tracker as a certificate names it: what it is and its MPE."""
+        return (f"simulated laser tracker (hilcal sim, emScon), MPE ±({self.mpe_constant_um:g} µm + "
+                f"{self.mpe_per_m_um:g} µm/m)")
+
+    def server_config(self, default_seed: int) -> TrackerServerConfig:
+        """The TrackerServerConfig to start the server with (seed: the rig seed unless set here)."""
+        data = self.model_dump(exclude={"alignment_error_mm", "alignment_error_deg"})
+        if "seed" not in self.model_fields_set:
+            data["seed"] = default_seed
+        return TrackerServerConfig.model_validate(data)
+
+
 class SimConfig(BaseModel):
     """Everything ``hilcal sim`` runs (see the module docstring for a TOML example)."""
 
@@ -127,6 +168,8 @@ class SimConfig(BaseModel):
     rig: SimRigSettings = Field(default_factory=SimRigSettings)
     controller: SimControllerConfig = Field(default_factory=SimControllerConfig)
     cmm: SimCmmConfig = Field(default_factory=SimCmmConfig)
+    instrument: Literal["cmm", "tracker"] = Field(default="cmm", description="the measuring instrument served")
+    tracker: SimTrackerConfig = Field(default_factory=SimTrackerConfig)
     state_file: Path | None = Field(default=None, description="controller and rig state, kept across restarts")
 
 
@@ -146,9 +189,11 @@ def _resolve(base: Path, value: Any) -> Any:
 
 
 def load_sim_config(
-    path: str | Path | None = None, *, state_file: str | Path | None = None, seed: int | None = None
+    path: str | Path | None = None, *, state_file: str | Path | None = None, seed: int | None = None,
+    instrument: str | None = None,
 ) -> SimConfig:
-    """The configuration from a TOML file (None: defaults), with ``--state-file``/``--seed`` overrides.
+    """The configuration from a TOML file (None: defaults), with ``--state-file``/``--seed``/``--instrument``
+    overrides.
 
     Relative ``robot``, ``state_file`` and errors-file paths are relative to the file. SimConfigError otherwise.
     """
@@ -174,6 +219,8 @@ def load_sim_config(
     if seed is not None:
         rig = data.get("rig")
         data["rig"] = {**(rig if isinstance(rig, dict) else {}), "seed": seed}
+    if instrument is not None:
+        data["instrument"] = instrument
     data = {k: v for k, v in data.items() if v is not None}
     try:
         return SimConfig.model_validate(data)

@@ -1,7 +1,8 @@
-"""All simulated devices in one process: the servo controller (SLCAN + Modbus TCP) and the CMM (pty + TCP).
+"""All simulated devices in one process: the servo controller (SLCAN + Modbus TCP) and the measuring instrument, the
+CMM (pty + TCP) or, with ``instrument = "tracker"``, the laser tracker (emScon on TCP).
 
-``start_sim(config)`` composes the rig, the persistent controller, its servers and the CMM server in-process
-(a context manager). The CMM reads the platform pose through the controller (``SimulatedController.true_pose``,
+``start_sim(config)`` composes the rig, the persistent controller, its servers and the instrument's server in-process
+(a context manager). The instrument reads the platform pose through the controller (``SimulatedController.true_pose``,
 under its lock), so it never sees a half-updated rig. Everything binds to 127.0.0.1.
 """
 
@@ -23,6 +24,9 @@ from sim_devices.controller.state_machine import SimulatedController
 from sim_devices.rig.rig import SimulatedRig
 from sim_devices.sim_config import SimConfig
 from sim_devices.sim_state import DEFAULT_LOCK_TIMEOUT_S, PersistentController, StateStore, restore_rig
+from sim_devices.tracker.config import Station
+from sim_devices.tracker.server import TrackerServerHandle, start_tracker_server
+from sim_devices.tracker.targets import rig_reflectors
 
 log = structlog.get_logger(__name__)
 
@@ -50,7 +54,21 @@ def published_alignment(rig: SimulatedRig, error_mm: float, error_deg: float, se
     T = np.eye(4)
     T[:3, :3] = (rig.to_cmm(np.eye(3)) - origin).T
     T[:3, 3] = origin
-    rng = np.random.default_rng([seed, 0xA11])
+    return _spoiled(T, error_mm, error_deg, [seed, 0xA11])
+
+
+def published_tracker_alignment(station: Station, error_mm: float, error_deg: float, seed: int) -> np.ndarray:
+    """T_tracker<-base (4x4) of the tracker's station (p_base = R p_tracker + t), spoiled like the CMM's."""
+    R = Rotation.from_euler("ZYX", station.as_array()[[5, 4, 3]], degrees=True).as_matrix()
+    T = np.eye(4)
+    T[:3, :3] = R.T
+    T[:3, 3] = -R.T @ station.as_array()[:3]
+    return _spoiled(T, error_mm, error_deg, [seed, 0x7A11])
+
+
+def _spoiled(T: np.ndarray, error_mm: float, error_deg: float, seed: list[int]) -> np.ndarray:
+    """T composed with a seeded error of error_mm and error_deg in the base frame."""
+    rng = np.random.default_rng(seed)
     axis, shift = rng.normal(size=3), rng.normal(size=3)
     spoil = np.eye(4)
     spoil[:3, :3] = Rotation.from_rotvec(np.radians(error_deg) * axis / np.linalg.norm(axis)).as_matrix()
@@ -59,7 +77,8 @@ def published_alignment(rig: SimulatedRig, error_mm: float, error_deg: float, se
 
 
 class SimHandle:
-    """The running simulator: ``controller``, ``controller_servers``, ``cmm_server``, ``rig``, ``alignment``."""
+    """The running simulator: ``controller``, ``controller_servers``, ``rig``, and the instrument's server:
+    ``cmm_server`` and its ``alignment``, or ``tracker_server`` and its ``tracker_alignment`` (the other is None)."""
 
     def __init__(
         self,
@@ -68,9 +87,10 @@ class SimHandle:
         rig: SimulatedRig,
         controller: PersistentController,
         controller_servers: ControllerServers,
-        cmm_server: CmmServerHandle,
+        cmm_server: CmmServerHandle | None,
         store: StateStore | None,
         restored: bool = False,
+        tracker_server: TrackerServerHandle | None = None,
     ) -> None:
         self.config = config
         self.robot = robot
@@ -78,28 +98,40 @@ class SimHandle:
         self.controller = controller
         self.controller_servers = controller_servers
         self.cmm_server = cmm_server
+        self.tracker_server = tracker_server
         self.store = store
         self.restored = restored
         """True when the controller and rig state came from an existing state file."""
-        cmm = config.cmm
+        cmm, tracker = config.cmm, config.tracker
         self.alignment = published_alignment(rig, cmm.alignment_error_mm, cmm.alignment_error_deg, config.rig.seed)
+        self.tracker_alignment = published_tracker_alignment(
+            tracker.station, tracker.alignment_error_mm, tracker.alignment_error_deg, config.rig.seed)
         self._closed = False
 
     def channels(self) -> dict[str, Any]:
         """Where to connect the real drivers (JSON-serialisable)."""
-        servers, cmm = self.controller_servers, self.cmm_server
+        servers, cmm, tracker = self.controller_servers, self.cmm_server, self.tracker_server
         out: dict[str, Any] = {
             "can": {"interface": "slcan", "channel": servers.slcan_path, "sleep_after_open": 0},
             "modbus": {"host": HOST, "port": servers.modbus_port, "device_id": self.config.controller.device_id},
-            "cmm": {"url": cmm.path or cmm.socket_url, "socket_url": cmm.socket_url,
-                    "identity": self.config.cmm.identity(),
-                    "stated_uncertainty_mm": self.config.cmm.stated_uncertainty()},
-            "cmm_alignment": self.alignment.tolist(),
+            "instrument": self.config.instrument,
             "robot": self.robot.name,
             "robot_path": None if self.config.robot is None else str(self.config.robot),
             "state_file": None if self.store is None else str(self.store.path),
             "pid": os.getpid(),
         }
+        if cmm is not None:
+            out["cmm"] = {"url": cmm.path or cmm.socket_url, "socket_url": cmm.socket_url,
+                          "identity": self.config.cmm.identity(),
+                          "stated_uncertainty_mm": self.config.cmm.stated_uncertainty()}
+            out["cmm_alignment"] = self.alignment.tolist()
+        if tracker is not None:
+            t = self.config.tracker
+            out["tracker"] = {"protocol": "emscon", "host": tracker.host, "port": tracker.port,
+                              "address": tracker.address, "identity": t.identity(),
+                              "mpe_constant_um": t.mpe_constant_um, "mpe_per_m_um": t.mpe_per_m_um,
+                              "air": t.air.model_dump()}
+            out["tracker_alignment"] = self.tracker_alignment.tolist()
         if servers.modbus_rtu_path is not None:
             out["modbus_rtu"] = {"serial_port": servers.modbus_rtu_path, "baudrate": 115200,
                                  "device_id": self.config.controller.device_id}
@@ -111,7 +143,10 @@ class SimHandle:
             return
         self._closed = True
         try:
-            self.cmm_server.close()
+            if self.cmm_server is not None:
+                self.cmm_server.close()
+            if self.tracker_server is not None:
+                self.tracker_server.close()
             self.controller_servers.close()
             self.controller.save_state(force=True)
         finally:
@@ -129,7 +164,8 @@ class SimHandle:
 
 
 def start_sim(config: SimConfig | None = None, *, lock_timeout_s: float = DEFAULT_LOCK_TIMEOUT_S) -> SimHandle:
-    """Start the simulated controller and CMM in this process; ``close()`` (or ``with``) stops them.
+    """Start the simulated controller and the instrument (CMM or tracker) in this process; ``close()`` (or ``with``)
+    stops them.
 
     Raises RobotFileError / ValueError (bad robot or errors), SimStateError (state file), OSError (transports).
     """
@@ -139,6 +175,8 @@ def start_sim(config: SimConfig | None = None, *, lock_timeout_s: float = DEFAUL
     rig = SimulatedRig(robot, cfg.rig.rig_config(robot))
     store = StateStore(cfg.state_file, robot.name, lock_timeout_s) if cfg.state_file is not None else None
     servers: ControllerServers | None = None
+    cmm: CmmServerHandle | None = None
+    tracker: TrackerServerHandle | None = None
     try:
         saved = store.load() if store is not None else None
         if saved is not None:
@@ -146,15 +184,21 @@ def start_sim(config: SimConfig | None = None, *, lock_timeout_s: float = DEFAUL
         controller = PersistentController(robot, rig, cfg.controller, store, saved.banks if saved else None)
         controller.save_state(force=True)
         servers = serve_controller(controller)
-        cmm = start_cmm_server(robot, cast(SimulatedRig, LockedRigView(rig, controller)),
-                               cfg.cmm.server_config(cfg.rig.seed))
+        view = LockedRigView(rig, controller)
+        if cfg.instrument == "tracker":
+            tracker = start_tracker_server(rig_reflectors(robot, view), cfg.tracker.server_config(cfg.rig.seed))
+        else:
+            cmm = start_cmm_server(robot, cast(SimulatedRig, view), cfg.cmm.server_config(cfg.rig.seed))
     except BaseException:
         if servers is not None:
             servers.close()
         if store is not None:
             store.close()
         raise
-    handle = SimHandle(cfg, robot, rig, controller, servers, cmm, store, restored=saved is not None)
+    handle = SimHandle(cfg, robot, rig, controller, servers, cmm, store, restored=saved is not None,
+                       tracker_server=tracker)
     log.info("sim_started", robot=robot.name, restored=handle.restored, start_s=round(time.perf_counter() - t0, 3),
-             can=servers.slcan_path, modbus_port=servers.modbus_port, cmm=cmm.path, cmm_socket=cmm.socket_url)
+             can=servers.slcan_path, modbus_port=servers.modbus_port, instrument=cfg.instrument,
+             cmm=cmm.path if cmm else None, cmm_socket=cmm.socket_url if cmm else None,
+             tracker=tracker.address if tracker else None)
     return handle

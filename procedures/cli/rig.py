@@ -19,13 +19,18 @@ def sim_command(
     as_json: Annotated[bool, typer.Option("--json", help="print the channels as one JSON line")] = False,
     state_file: Annotated[Path | None, typer.Option(help="keep controller and rig state in this file")] = None,
     seed: Annotated[int | None, typer.Option(help="rig seed")] = None,
+    instrument: Annotated[str | None, typer.Option(
+        help="the measuring instrument: cmm (the default) or tracker (a laser tracker on emScon over TCP)")] = None,
 ) -> None:
-    """Start every simulated device (controller on SLCAN/pty + Modbus TCP, CMM on a pty) until Ctrl-C."""
+    """Start every simulated device (controller on SLCAN/pty + Modbus TCP, CMM on a pty or laser tracker on TCP)
+    until Ctrl-C."""
     from sim_devices.launcher import run_sim_process
     from sim_devices.sim_config import SimConfigError, load_sim_config
 
     try:
-        sim_config = load_sim_config(config, state_file=state_file, seed=seed)
+        if instrument not in (None, "cmm", "tracker"):
+            raise SimConfigError(f"--instrument must be cmm or tracker, not {instrument!r}")
+        sim_config = load_sim_config(config, state_file=state_file, seed=seed, instrument=instrument)
     except SimConfigError as e:
         fail(str(e))
     raise typer.Exit(run_sim_process(sim_config, as_json))
