@@ -1,8 +1,11 @@
-"""Platform pose from CMM-measured sphere centres, by rigid registration of the known sphere layouts.
+"""Platform pose from measured points (CMM sphere centres, laser tracker targets), by rigid registration of the
+known layouts.
 
-The CMM frame is arbitrary: registering the base spheres gives T_cmm<-base, registering the platform spheres
-gives T_cmm<-platform, and the pose is T_base<-platform = inv(T_cmm<-base) T_cmm<-platform, so the CMM's
-placement cancels. Poses are [x, y, z mm, roll, pitch, yaw deg] with R = Rz(yaw) Ry(pitch) Rx(roll).
+The instrument's frame is arbitrary: registering the base points gives T_instrument<-base, registering the platform
+points gives T_instrument<-platform, and the pose is T_base<-platform = inv(T_instrument<-base)
+T_instrument<-platform, so the instrument's placement cancels. ``pose_from_points`` takes any two layouts (at least
+three points each, not on a line: a tracker's platform nests and base monuments); ``pose_from_spheres`` is it with the
+robot file's CMM sphere layouts. Poses are [x, y, z mm, roll, pitch, yaw deg] with R = Rz(yaw) Ry(pitch) Rx(roll).
 """
 
 from __future__ import annotations
@@ -68,15 +71,48 @@ def rigid_fit(model: np.ndarray, measured: np.ndarray) -> tuple[np.ndarray, np.n
     return R, t, rms
 
 
-def _check_measured(name: str, measured: np.ndarray, layout: np.ndarray) -> np.ndarray:
-    """Measured centres as a float array shaped like the robot's sphere layout (optionally batched)."""
+def _check_measured(name: str, measured: np.ndarray, layout: np.ndarray, what: str) -> np.ndarray:
+    """Measured points as a float array shaped like their layout (optionally batched)."""
     m = np.asarray(measured, dtype=float)
     k = layout.shape[0]
     if m.shape[-2:] != (k, 3) or m.ndim not in (2, 3):
-        raise ValueError(f"{name} must have shape ({k}, 3) or (N, {k}, 3) like the robot file; got {m.shape}")
+        raise ValueError(f"{name} must have shape ({k}, 3) or (N, {k}, 3) like {what}; got {m.shape}")
     if not np.all(np.isfinite(m)):
         raise ValueError(f"{name} contains NaN or infinite coordinates")
     return m
+
+
+def _check_layout(name: str, layout: np.ndarray) -> np.ndarray:
+    """A layout of at least three points (k, 3)."""
+    a = np.asarray(layout, dtype=float)
+    if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < 3 or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be at least 3 points of 3 finite coordinates, got shape {a.shape}")
+    return a
+
+
+def pose_from_points(platform_measured: np.ndarray, platform_layout: np.ndarray, base_measured: np.ndarray,
+                     base_layout: np.ndarray, what: str = "their layout") -> PoseFit:
+    """Platform pose(s) in the base frame from points measured in any instrument frame (mm, deg).
+
+    ``platform_layout`` (M, 3) holds the platform points in the platform frame, ``base_layout`` (K, 3) the base points
+    in the base frame (M, K >= 3). Accepts one measurement ((M, 3), (K, 3)) or a batch ((N, M, 3), (N, K, 3)), the
+    points in their layouts' order.
+    """
+    p_layout = _check_layout("platform_layout", platform_layout)
+    b_layout = _check_layout("base_layout", base_layout)
+    plat = _check_measured("platform_measured", platform_measured, p_layout, what)
+    base = _check_measured("base_measured", base_measured, b_layout, what)
+    if (plat.ndim == 3) != (base.ndim == 3) or (plat.ndim == 3 and plat.shape[0] != base.shape[0]):
+        raise ValueError(
+            f"platform_measured {plat.shape} and base_measured {base.shape} must both be single measurements "
+            "or batches of the same length"
+        )
+    R_cp, t_cp, rms_p = rigid_fit(p_layout, plat)
+    R_cb, t_cb, rms_b = rigid_fit(b_layout, base)
+    R_cb_T = np.swapaxes(R_cb, -1, -2)
+    R = R_cb_T @ R_cp
+    t = np.einsum("...ij,...j->...i", R_cb_T, t_cp - t_cb)
+    return PoseFit(pose=pose_from_matrix(R, t), rms_residual_mm=np.stack([rms_p, rms_b], axis=-1))
 
 
 def pose_from_spheres(platform_measured: np.ndarray, base_measured: np.ndarray, robot: Robot) -> PoseFit:
@@ -85,16 +121,5 @@ def pose_from_spheres(platform_measured: np.ndarray, base_measured: np.ndarray, 
     Accepts one measurement ((M, 3), (K, 3)) or a batch ((N, M, 3), (N, K, 3)), sphere order as in the robot
     file; M, K are the robot's numbers of platform and base spheres.
     """
-    plat = _check_measured("platform_measured", platform_measured, robot.platform_spheres)
-    base = _check_measured("base_measured", base_measured, robot.base_spheres)
-    if (plat.ndim == 3) != (base.ndim == 3) or (plat.ndim == 3 and plat.shape[0] != base.shape[0]):
-        raise ValueError(
-            f"platform_measured {plat.shape} and base_measured {base.shape} must both be single measurements "
-            "or batches of the same length"
-        )
-    R_cp, t_cp, rms_p = rigid_fit(robot.platform_spheres, plat)
-    R_cb, t_cb, rms_b = rigid_fit(robot.base_spheres, base)
-    R_cb_T = np.swapaxes(R_cb, -1, -2)
-    R = R_cb_T @ R_cp
-    t = np.einsum("...ij,...j->...i", R_cb_T, t_cp - t_cb)
-    return PoseFit(pose=pose_from_matrix(R, t), rms_residual_mm=np.stack([rms_p, rms_b], axis=-1))
+    return pose_from_points(platform_measured, robot.platform_spheres, base_measured, robot.base_spheres,
+                            "the robot file")
