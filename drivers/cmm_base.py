@@ -157,16 +157,19 @@ class CmmInterface(abc.ABC):
 
     def measure_pose(self, robot: Robot, alignment: np.ndarray, expected_pose: np.ndarray | None = None,
                      pose_cov: np.ndarray | None = None, alignment_tolerance: tuple[float, float] | None = None,
-                     registered: bool = True) -> PoseMeasurement:
+                     registered: bool = False) -> PoseMeasurement:
         """Measure the base spheres, then the platform spheres, and register both layouts to get the pose.
 
         ``alignment`` is an approximate T_cmm<-base (4x4, or the (6,) pose of the base frame in the CMM frame) known
-        to ``alignment_tolerance`` (mm, deg; default: the probing settings' ``default_bound_mm``); ``expected_pose``
+        to ``alignment_tolerance`` (mm, deg; default: 10 mm and 0.2 deg, ``cmm_types.DEFAULT_ALIGNMENT_MM/DEG``);
+        ``expected_pose``
         (default: the robot's home) predicts the platform spheres with ``pose_cov``, the (6, 6) covariance of its
         [dt (mm); dw (rad)] in base axes (``hilcal.acquisition.model.PosePrediction``; default: ``default_bound_mm``
         in translation). Each measured sphere conditions its body's frame, so the next is predicted better;
         ``extra`` counts the touches and searches. An alignment not ``registered`` on measured base spheres yet (the
-        station's) may be off beyond its tolerance: base-sphere searches then descend from ``max_search_mm`` above
-        the prediction. The probe ends parked above every place a platform sphere can reach.
+        station's; the default) may be off beyond its tolerance: base-sphere searches then descend from
+        ``max_search_mm`` above the prediction. Pass a previous pose's ``refined_alignment`` with ``registered=True``
+        and a tight tolerance (``cmm_probing.REGISTERED_MM/DEG``) to skip that. The probe ends parked above every place
+        a platform sphere can reach.
         """
         return Prober(self).measure_pose(robot, alignment, expected_pose, pose_cov, alignment_tolerance, registered)

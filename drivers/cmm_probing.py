@@ -19,6 +19,8 @@ import numpy as np
 import structlog
 
 from drivers.cmm_types import (
+    DEFAULT_ALIGNMENT_DEG,
+    DEFAULT_ALIGNMENT_MM,
     PoseMeasurement,
     PoseMeasurementError,
     ProbeMiss,
@@ -260,14 +262,14 @@ class Prober:
 
     def measure_pose(self, robot: Robot, alignment: np.ndarray, expected_pose: np.ndarray | None = None,
                      pose_cov: np.ndarray | None = None, alignment_tolerance: tuple[float, float] | None = None,
-                     registered: bool = True) -> PoseMeasurement:
+                     registered: bool = False) -> PoseMeasurement:
         """The base spheres, then the platform spheres, each predicted from its body's frame as conditioned by the
         spheres before it; the pose from both registrations (see ``CmmInterface.measure_pose``)."""
         cfg = self.cfg
         T0 = as_transform(alignment)
         expected = robot.home if expected_pose is None else np.asarray(expected_pose, dtype=float)
         r = robot.sphere_radius_mm
-        mm, deg = alignment_tolerance or (cfg.default_bound_mm, 0.0)
+        mm, deg = alignment_tolerance or (DEFAULT_ALIGNMENT_MM, DEFAULT_ALIGNMENT_DEG)
         base_belief = BodyBelief.within(T0, mm, deg)
         if pose_cov is None:
             pose_cov = BodyBelief.within(np.eye(4), cfg.default_bound_mm, 0.0).cov

@@ -164,6 +164,11 @@ class PoseMeasurement:
     extra: dict = field(default_factory=dict)
 
 
+DEFAULT_ALIGNMENT_MM, DEFAULT_ALIGNMENT_DEG = 10.0, 0.2
+"""How far a station's approximate alignment may be off when nothing says better (a bound): the first pose's base
+spheres are searched for within it."""
+
+
 class ProbingConfig(BaseModel):
     """How spheres are probed and judged (transport-independent)."""
 

@@ -77,6 +77,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from drivers.cmm_base import ProbingConfig, as_transform
 from drivers.cmm_serial import SerialCmm, SerialCmmConfig
+from drivers.cmm_types import DEFAULT_ALIGNMENT_DEG, DEFAULT_ALIGNMENT_MM
 from drivers.controller_can import ControllerCan
 from drivers.controller_modbus import ControllerParams
 from hilcal.protocols.toml_text import toml_lines
@@ -137,9 +138,11 @@ class CmmSection(CmmIdentity):
     alignment: list[Any] = Field(
         description="T_cmm<-base, good to a few mm: a 4x4 matrix or [x, y, z mm, roll, pitch, yaw deg]"
     )
-    alignment_tolerance_mm: float = Field(default=10.0, gt=0, le=90.0, description="how far the base frame's origin "
-                                          "may be from where `alignment` puts it (the first pose searches that far)")
-    alignment_tolerance_deg: float = Field(default=0.2, ge=0, le=5.0, description="how far `alignment` may be turned")
+    alignment_tolerance_mm: float = Field(default=DEFAULT_ALIGNMENT_MM, gt=0, le=90.0,
+                                          description="how far the base frame's origin may be from where `alignment` "
+                                          "puts it (the first pose searches that far)")
+    alignment_tolerance_deg: float = Field(default=DEFAULT_ALIGNMENT_DEG, ge=0, le=5.0,
+                                           description="how far `alignment` may be turned")
     serial: SerialCmmConfig = Field(default_factory=SerialCmmConfig)
     probing: ProbingConfig = Field(default_factory=ProbingConfig)
 
