@@ -186,6 +186,8 @@ class TrackerInterface(abc.ABC):
 
     measure_retries: int = 2
     """``measure_point``: acquisitions made again after a measurement the beam broke (or a lost lock)."""
+    remeasures: int = 0
+    """How many measurements ``measure_point`` made again so far (beam breaks, locks lost)."""
 
     @abc.abstractmethod
     def initialize(self) -> None:
@@ -297,8 +299,9 @@ class TrackerInterface(abc.ABC):
                                         f"no reflector found near ({near}) mm in the tracker's frame (out of the line "
                                         "of sight, out of range, or beyond the search radius)") from err
             except (MeasurementFailed, NoReflectorLocked) as err:
-                log.warning("tracker.measure_again", approx_mm=approx.round(3).tolist(), attempt=attempt + 1,
-                            error=str(err))
                 if attempt == self.measure_retries:
                     raise
+                self.remeasures += 1
+                log.warning("tracker.measure_again", approx_mm=approx.round(3).tolist(), attempt=attempt + 1,
+                            error=str(err))
         raise AssertionError("unreachable")
