@@ -11,6 +11,7 @@ from hilcal.identification import IdentificationResult, identify, predict_poses
 from hilcal.metrics import AccuracySummary
 from hilcal.recording import Recording
 from hilcal.robot import Robot
+from hilcal.stations import remove_frames
 
 
 @dataclass(frozen=True)
@@ -53,16 +54,22 @@ def verification_accuracy(
     ver = rec.select("verify")
     if ver.n == 0:
         return None, None
-    before = AccuracySummary.of(ver.meas, ver.cmd) if not np.isnan(ver.cmd).any() else None
+    meas = ver.meas
+    if ident is not None and ident.station_frames and ver.stations is not None:
+        meas = remove_frames(meas, ver.stations, ident.station_frames, ident.length_mm, robot.home[:3])
+    before = AccuracySummary.of(meas, ver.cmd) if not np.isnan(ver.cmd).any() else None
     after = None
     if ident is not None:
-        after = AccuracySummary.of(ver.meas, predict_poses(ident, robot, ver.legs_mm, ver.meas))
+        after = AccuracySummary.of(meas, predict_poses(ident, robot, ver.legs_mm, meas))
     return before, after
 
 
 def calibrate(rec: Recording, robot: Robot, **identify_options: Any) -> CalibrationOutcome:
     """Identify on the measure rows (options as for `identify`) and evaluate on the verify rows."""
     mea = rec.select("measure")
+    if mea.stations is not None and "stations" not in identify_options and identify_options.get("estimator",
+                                                                                                 "ls") == "ls":
+        identify_options = {**identify_options, "stations": mea.stations}
     ident = identify(robot, mea.legs_mm, mea.meas, **identify_options)
     before, after = verification_accuracy(rec, robot, ident)
     return CalibrationOutcome(ident, mea.n, rec.n - mea.n, before, after)

@@ -30,6 +30,7 @@ from hilcal.error_models import (
 )
 from hilcal.kinematics import Geometry, forward_kinematics, split_pose
 from hilcal.robot import Robot
+from hilcal.stations import StationFrames
 
 log = structlog.get_logger(__name__)
 
@@ -63,6 +64,9 @@ class IdentificationResult:
     converged: bool
     message: str
     length_mm: float
+    station_frames: dict[int, np.ndarray] | None = None
+    """Each fitted instrument station's rigid error [dt (mm); dw (rad)] about the workspace centre (None: one
+    station, or none given); the first station's is zero by definition (``hilcal.stations``)."""
 
     def parameters(self) -> dict[str, float]:
         return {n: float(v) for n, v in zip(self.names, self.x, strict=True)}
@@ -96,11 +100,14 @@ def residual_function(
     formulation: Formulation,
     length_mm: float,
     extra: np.ndarray | None = None,
+    stations: np.ndarray | None = None,
 ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """r(x), dr/dx for the 42-parameter model, optionally with extra leg-length terms.
+    """r(x), dr/dx for the 42-parameter model, optionally with extra leg-length terms and instrument stations.
 
     `extra` [N, 6, q] holds regressors phi of effects that are linear in their parameters theta: the
     geometric leg length becomes reported + dl0 + phi @ theta, and x = [42 geometric errors, theta].
+    `stations` (N,) labels each row's instrument station: every station but the first gets a rigid frame error,
+    eliminated from r and J by projection (``hilcal.stations``), so the fit is the joint one (forward only).
     """
     nominal = Geometry.nominal(robot)
     n_geo = GEOMETRIC_42.size
@@ -123,9 +130,14 @@ def residual_function(
         r = implicit_residuals(geom, lengths, poses).reshape(-1)
         return r, np.concatenate([implicit_jacobian(geom, poses), -phi], axis=-1).reshape(r.size, -1)
 
+    frames = None if stations is None else StationFrames.of(stations, poses, length_mm, robot.home[:3])
     if formulation == "forward":
-        return forward
+        if frames is None:
+            return forward
+        return lambda x: frames.project(*forward(x))  # type: ignore[return-value]
     if formulation == "implicit":
+        if frames is not None:
+            raise IdentificationError("instrument stations are fitted in the forward formulation only")
         return implicit
     raise IdentificationError(f"unknown formulation {formulation!r}: use 'forward' or 'implicit'")
 
@@ -152,10 +164,11 @@ def _column_scale(J: np.ndarray) -> np.ndarray:
 
 
 def _ls_statistics(
-    r: np.ndarray, J: np.ndarray
+    r: np.ndarray, J: np.ndarray, eliminated: int = 0
 ) -> tuple[float, np.ndarray | None, np.ndarray | None, int]:
-    """sigma^2 = sum r^2 / (m - rank) and covariance sigma^2 (J^T J)^+ with column scaling."""
-    m = r.size
+    """sigma^2 = sum r^2 / (m - rank - eliminated) and covariance sigma^2 (J^T J)^+ with column scaling;
+    `eliminated`: parameters projected out of r and J beforehand (instrument stations)."""
+    m = r.size - eliminated
     c = _column_scale(J)
     _U, s, Vt = np.linalg.svd(J / c, full_matrices=False)
     rank = int(np.sum(s > s[0] * 1e-10))
@@ -258,6 +271,7 @@ def identify(
     extra_regressors: np.ndarray | None = None,
     extra_names: tuple[str, ...] = (),
     x0: np.ndarray | None = None,
+    stations: np.ndarray | None = None,
 ) -> IdentificationResult:
     """Identify geometric errors from reported leg lengths and measured poses (mm, deg).
 
@@ -265,7 +279,9 @@ def identify(
     length. The paper's 60-parameter model is linear, so it supports the forward one-step method only.
     `extra_regressors` [N, 6, q] adds effects linear in their parameters (named by `extra_names`) to the
     rigid model: geometric length = reported + dl0 + phi @ theta. `x0` starts the iterated least squares there
-    (e.g. a previous fit) instead of at the nominal geometry.
+    (e.g. a previous fit) instead of at the nominal geometry. `stations` (N,) labels each pose's instrument station:
+    every station but the first gets its rigid frame error fitted with the rest (``hilcal.stations``; least squares,
+    forward formulation).
     """
     if model not in MODELS:
         raise IdentificationError(f"unknown model {model!r}: use one of {sorted(MODELS)}")
@@ -281,7 +297,11 @@ def identify(
         if np.shape(extra_regressors)[:2] != np.shape(legs_mm) or len(extra_names) != np.shape(extra_regressors)[2]:
             raise IdentificationError("extra_regressors must be [N, 6, q] with q names")
         names = names + tuple(extra_names)
-    L, q = _check_data(legs_mm, poses, len(names))
+    frames = None if stations is None else StationFrames.of(stations, np.asarray(poses, dtype=float), 1.0,
+                                                              robot.home[:3])
+    if frames is not None and (estimator != "ls" or model != GEOMETRIC_42.key):
+        raise IdentificationError("instrument stations are fitted by least squares on the 42-parameter model only")
+    L, q = _check_data(legs_mm, poses, len(names) + (0 if frames is None else frames.n_params))
     lc = robot.characteristic_length_mm if length_mm is None else float(length_mm)
     if model == "60":
         if formulation != "forward" or method != "one_step":
@@ -289,7 +309,7 @@ def identify(
                                       "method=one_step")
         fun = _paper60_linear(robot, L, q, lc)
     else:
-        fun = residual_function(robot, L, q, formulation, lc, extra_regressors)
+        fun = residual_function(robot, L, q, formulation, lc, extra_regressors, stations)
     if estimator == "ls":
         if x0 is not None and np.shape(x0) != (len(names),):
             raise IdentificationError(f"x0 must have {len(names)} values, got {np.shape(x0)}")
@@ -297,7 +317,11 @@ def identify(
     else:
         x, nit, converged, message = _identify_linf(fun, len(names), method, max_iter, tol)
     r, J = fun(x)
-    sigma, std, cov, rank = _ls_statistics(r, J)
+    sigma, std, cov, rank = _ls_statistics(r, J, 0 if frames is None else frames.n_params)
+    station_frames = None
+    if frames is not None:
+        raw = residual_function(robot, L, q, formulation, lc, extra_regressors)(x)[0]
+        station_frames = frames.estimate(raw)
     if estimator != "ls":
         sigma, std, cov = None, None, None
     result = IdentificationResult(
@@ -305,6 +329,7 @@ def identify(
         residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))),
         rms_residual=float(np.sqrt(np.mean(r**2))), sigma=sigma, std_errors=std, covariance=cov,
         rank=rank, n_iterations=nit, converged=converged, message=message, length_mm=lc,
+        station_frames=station_frames,
     )
     log.info("identified", model=model, estimator=estimator, formulation=formulation, method=method,
              n_poses=L.shape[0], max_residual_mm=result.max_abs_residual, rms_residual_mm=result.rms_residual,

@@ -87,6 +87,13 @@ class Recording:
         return self.extra.get("temp_c")
 
     @property
+    def stations(self) -> np.ndarray | None:
+        """Each row's instrument station (integers) when the recording has a ``station`` column, else None: every
+        station but the first gets a rigid frame error in the fits (``hilcal.stations``)."""
+        values = self.extra.get("station")
+        return None if values is None else np.asarray(values).astype(int)
+
+    @property
     def has_cmd(self) -> bool:
         """True when every row carries its commanded pose."""
         return bool(np.all(np.isfinite(self.cmd)))
@@ -188,6 +195,7 @@ def _validate(rec: Recording, loc: _Locator, robot: Robot | None, min_measure_ro
     ang_limits = _angle_limits(robot)
     pose_limits = pos_limits + ang_limits
     temp = extra.get("temp_c")
+    station = extra.get("station")
 
     first_line_of_seq: dict[int, int] = {}
     for i in range(n):
@@ -276,6 +284,12 @@ def _validate(rec: Recording, loc: _Locator, robot: Robot | None, min_measure_ro
                     f"{_show(v)} °C is outside the physical range [{_bound(TEMP_RANGE_C[0])}, "
                     f"{_bound(TEMP_RANGE_C[1])}] °C",
                 )
+
+        if station is not None:
+            v = float(station[i]) if station.dtype.kind in "fiu" else math.nan
+            if not (math.isfinite(v) and v >= 0 and v == int(v)):
+                raise loc.error(i, s, "station", f"{_show(station[i])} is not a station number (an integer >= 0: "
+                                "the instrument set-up the row was measured from)")
 
     n_measure = int(np.count_nonzero(phase == "measure"))
     if n_measure < min_measure_rows:

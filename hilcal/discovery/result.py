@@ -283,6 +283,9 @@ class Diagnosis:
     compensation_after: AccuracySummary | None = None
     """Held-out verify accuracy of the exported compensation set's model (the final model when nothing is left
     out)."""
+    station_frames: dict[int, np.ndarray] | None = None
+    """Each instrument station's rigid error [dt (mm); dw (rad)] fitted with the model (``hilcal.discovery.stations``;
+    the first station's is zero by definition); None: one station."""
 
     @property
     def faults(self) -> tuple[NamedEffect, ...]:
@@ -335,6 +338,9 @@ class Diagnosis:
             "cv_rms_effect_mm": self.cv_rms_effect_mm,
             "noise": self.noise.to_json(),
             "residual_to_noise": None if self.noise_ratio is None else self.noise_ratio.to_json(),
+            "station_frames": None if self.station_frames is None else {
+                str(k): {"dt_mm": v[:3].tolist(), "dw_deg": np.degrees(v[3:]).tolist()}
+                for k, v in self.station_frames.items()},
             "unexplained": [s.to_json() for s in self.shapes],
             "session_shift": None if self.session_shift is None else self.session_shift.to_json(),
             "findings": [f.text for f in self.findings],

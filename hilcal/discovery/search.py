@@ -75,6 +75,7 @@ from hilcal.discovery.screen import (
 )
 from hilcal.discovery.selection import GroupTest, assess, choose
 from hilcal.discovery.shapes import shapes_for
+from hilcal.discovery.stations import with_stations
 from hilcal.discovery.term_groups import GENERIC, LIBRARY, TermGroup, stack_phi
 from hilcal.error_models import pose_difference
 from hilcal.identification import IdentificationResult, residual_function
@@ -269,9 +270,9 @@ def diagnose(
     synchronisation, and on a busy PC their busy-waiting made the search several times slower
     (benchmarks/bench_diagnose.py)."""
     with threadpool_limits(limits=1, user_api="blas"):
-        return _diagnose(rec, robot, alpha=alpha, n_boot=n_boot, seed=seed, cmm_sigma_mm=cmm_sigma_mm,
-                         max_steps=max_steps, generic=generic, pose_sigma=pose_sigma,
-                         include_unconfirmed=include_unconfirmed)
+        return with_stations(rec, robot, lambda r: _diagnose(
+            r, robot, alpha=alpha, n_boot=n_boot, seed=seed, cmm_sigma_mm=cmm_sigma_mm, max_steps=max_steps,
+            generic=generic, pose_sigma=pose_sigma, include_unconfirmed=include_unconfirmed))
 
 
 def _titles(groups: tuple[TermGroup, ...]) -> dict[str, str]:
@@ -472,7 +473,9 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
     final = final_fit(p, chosen, sel.fit if chosen else geo, scales, noise_mm)
     r_final, J_final = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm,
                                          p.phi_of(chosen))(final.x)
-    cov = cluster_robust_covariance(J_final, r_final, p.mea.n)
+    # the covariance with the instrument stations' errors projected out: every error carries their uncertainty
+    cov = cluster_robust_covariance(*residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm,
+                                                       p.phi_of(chosen), p.mea.stations)(final.x)[::-1], p.mea.n)
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     before = verify_accuracy(p, geo, [])
     after = verify_accuracy(p, final, chosen)
