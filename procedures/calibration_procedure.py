@@ -35,6 +35,7 @@ from procedures.approval import approval_detail, workspace_samples
 from procedures.physics import ControllerInfo, PhysicsDecision, decide
 from procedures.plan import CalibrationPlan, return_waypoints, waypoints
 
+CMM_SETUP = "Mount the three platform and three base tooling spheres; CMM homed and aligned?"
 PRE_PHASES = ("measure", "verify")
 AFTER_PHASE = "verify_after"
 TIMED_PHASES = (*PRE_PHASES, AFTER_PHASE, ACCEPTANCE_PHASE, "return_home")
@@ -53,6 +54,10 @@ class RunOptions:
     """Diagnose the run's own recording and upload what it finds with the geometry (False: the geometry alone)."""
     adaptive: AdaptiveRun | None = None
     """Measure adaptively (the plan's measure poses are then only the reference and candidates); None: the plan."""
+    setup_prompt: str = CMM_SETUP
+    """What the operator confirms of the instrument's set-up before anything moves (the station's instrument's)."""
+    pose_sigma: tuple[float, float] | None = None
+    """The instrument's pose noise (mm, deg) as the diagnosis' yardstick (a laser tracker's MPE); None: its own."""
 
 
 @dataclass
@@ -236,7 +241,7 @@ def _adaptive_measure_phase(run: AdaptiveRun, geom: ControllerGeometry, pose: np
 def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptions
                           ) -> Generator[Any, Any, ProcedureResult]:
     """Measure, identify, upload, verify. Returns what the report needs."""
-    yield m.Prompt("spheres", "Mount the three platform and three base tooling spheres; CMM homed and aligned?")
+    yield m.Prompt("spheres", options.setup_prompt)
     yield m.Prompt("area", "Clear the area around the platform: it is about to move. Go on?")
     yield m.PrepareCmm()
     before, info = yield m.ReadParams("before")
@@ -270,7 +275,8 @@ def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptio
     result.outcomes = {est: calibrate(rec, robot, estimator=est) for est in ("ls", "linf")}
     controller = controller_info(before, info)
     physics = decide(rec, robot, result.outcomes[options.estimator], controller, physics=options.physics,
-                     joint_bound_mm=options.joint_bound_mm, offset_bound_mm=options.offset_bound_mm)
+                     joint_bound_mm=options.joint_bound_mm, offset_bound_mm=options.offset_bound_mm,
+                     pose_sigma=options.pose_sigma)
     result.physics = physics
     result.problems = physics.problems
     if result.problems and not options.force:

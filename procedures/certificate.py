@@ -1,6 +1,10 @@
 """The sign-off of a run: who calibrated which machine with which instrument, the figures with their uncertainty,
 the ISO 9283 table and the verdict (report.json's sign-off keys); then the certificate files and the records.
 
+The instrument's part of every figure's uncertainty is the CMM's stated uncertainty per sphere-centre coordinate, or
+a laser tracker's MPE read as the expanded uncertainty U (k = 2) per coordinate of a measured point at its distance
+from the tracker (``hilcal.acceptance.tracker_mpe``), carried through the pose registration.
+
 ``signoff_section`` turns what the run measured into those keys (the math is ``hilcal.acceptance``);
 ``write_certificate`` renders certificate.html from report.json alone (``hilcal.reports.certificate``) and prints it
 to certificate.pdf (``procedures.pdf``), so ``hilcal certificate RUN_DIR`` regenerates both from the run folder.
@@ -21,6 +25,7 @@ import structlog
 
 from hilcal.acceptance.evaluation import evaluate_iso9283, limit_figures
 from hilcal.acceptance.iso9283 import CYCLE_ORDER, DEFAULT_CYCLES, POSE_NAMES
+from hilcal.acceptance.tracker_mpe import K_MPE, target_points_mm, target_uncertainty_mm, tracker_origin_mm
 from hilcal.acceptance.uncertainty import (
     K_COVERAGE,
     accuracy_figures,
@@ -38,6 +43,9 @@ log = structlog.get_logger(__name__)
 
 CERTIFICATE_FILES = ("certificate.html", "certificate.pdf")
 SIM_CMM = "simulated CMM (hilcal sim)"
+SIM_TRACKER = "simulated laser tracker (hilcal sim)"
+MPE_READING = ("the maximum permissible error at a point's distance from the tracker, read as the expanded uncertainty "
+               "U (k = 2) of each coordinate of the measured point")
 
 
 @dataclass(frozen=True)
@@ -49,7 +57,10 @@ class SignoffContext:
     acceptance: AcceptanceTest | None = None
     sim: bool = False
     robot_path: str | None = None
-    cmm_url: str | None = None
+    instrument_url: str | None = None
+    """Where the instrument is: the CMM's URL, the tracker's host:port."""
+    tracker: Any = None
+    """The station's laser tracker (``procedures.tracker_section.TrackerSection``) when it measured with one."""
 
 
 def certificate_number(run_id: str) -> str:
@@ -89,6 +100,30 @@ def _cmm_uncertainty(ctx: SignoffContext, robot: Robot) -> tuple[float | None, s
     return None, None
 
 
+def _tracker(ctx: SignoffContext, robot: Robot, finished_at: str) -> tuple[dict[str, Any], np.ndarray]:
+    """A laser tracker's instrument keys (its MPE, the U it gives the targets at the home pose) and pose covariance."""
+    t = ctx.tracker
+    platform, base = t.layouts()
+    origin = tracker_origin_mm(t.alignment_matrix())
+    u = target_uncertainty_mm(platform, base, robot.home, origin, t.mpe_constant_um, t.mpe_per_m_um)
+    far = np.linalg.norm(target_points_mm(platform, base, robot.home) - origin, axis=1)
+    due = t.calibration_due
+    overdue = None if due is None else due < dt.datetime.fromisoformat(finished_at).date()
+    warning = (f"the laser tracker's own calibration was due on {due.isoformat()}: overdue on the day of this "
+               "calibration") if overdue else None
+    return {"kind": "tracker", "cmm": None, "tracker": t.identity or (SIM_TRACKER if ctx.sim else None),
+            "url": ctx.instrument_url, "mpe_constant_um": t.mpe_constant_um, "mpe_per_m_um": t.mpe_per_m_um,
+            "mpe_reading": MPE_READING, "k": K_MPE, "stated_uncertainty_mm": None,
+            "point_uncertainty_mm": {"min": float(np.min(u)), "max": float(np.max(u))},
+            "target_distance_mm": {"min": float(np.min(far)), "max": float(np.max(far))},
+            "n_platform_targets": len(platform), "n_base_monuments": len(base),
+            "uncertainty_source": "the simulator's [tracker] MPE and station" if ctx.sim else (
+                "station file [tracker] mpe_constant_um, mpe_per_m_um and alignment (the distances)"),
+            "air": t.environment.model_dump(),
+            "calibration_due": None if due is None else due.isoformat(), "overdue": overdue,
+            "warning": warning}, t.pose_covariance(robot)
+
+
 def _instrument(ctx: SignoffContext, robot: Robot, finished_at: str) -> dict[str, Any]:
     stated, source = _cmm_uncertainty(ctx, robot)
     due = ctx.settings.cmm.calibration_due
@@ -98,7 +133,8 @@ def _instrument(ctx: SignoffContext, robot: Robot, finished_at: str) -> dict[str
         warning = f"the CMM's own calibration was due on {due.isoformat()}: overdue on the day of this calibration"
     elif stated is None:
         warning = "the CMM's uncertainty is not stated: the figures carry only the scatter of the run's repeated poses"
-    return {"cmm": ctx.settings.cmm.identity or (SIM_CMM if ctx.sim else None), "url": ctx.cmm_url,
+    return {"kind": "cmm", "cmm": ctx.settings.cmm.identity or (SIM_CMM if ctx.sim else None),
+            "url": ctx.instrument_url,
             "stated_uncertainty_mm": stated, "uncertainty_source": source,
             "calibration_due": None if due is None else due.isoformat(), "overdue": overdue, "warning": warning}
 
@@ -149,9 +185,12 @@ def signoff_section(ctx: SignoffContext, robot: Robot, plan: Any, result: Any, p
                     run_id: str, finished_at: str) -> dict[str, Any]:
     """report.json's sign-off keys: operator, station, machine, software, instrument, environment, method,
     uncertainty, iso9283 and certificate (number, verdict per limit, decision rule)."""
-    instrument = _instrument(ctx, robot, finished_at)
-    stated = instrument["stated_uncertainty_mm"]
-    cmm_cov = None if stated is None else cmm_pose_covariance(robot, stated / K_COVERAGE)
+    if ctx.tracker is not None:
+        instrument, cmm_cov = _tracker(ctx, robot, finished_at)
+    else:
+        instrument = _instrument(ctx, robot, finished_at)
+        stated = instrument["stated_uncertainty_mm"]
+        cmm_cov = None if stated is None else cmm_pose_covariance(robot, stated / K_COVERAGE)
     measure = [r for r in pre_rows if r["phase"] == "measure"]
     verify = [r for r in pre_rows if r["phase"] == "verify"]
     groups = []
@@ -189,7 +228,8 @@ def signoff_section(ctx: SignoffContext, robot: Robot, plan: Any, result: Any, p
                    "acceptance_sha256": None if ctx.acceptance is None else ctx.acceptance.sha256()},
         "uncertainty": {
             "k": K_COVERAGE, "method": "GUM Supplement 1 Monte Carlo, seeded (docs/certificate.md)",
-            "cmm_pose_sd": None if cmm_cov is None else np.sqrt(np.diag(cmm_cov)).tolist(),
+            "cmm_pose_sd": None if cmm_cov is None or ctx.tracker is not None else np.sqrt(np.diag(cmm_cov)).tolist(),
+            "instrument_pose_sd": None if cmm_cov is None else np.sqrt(np.diag(cmm_cov)).tolist(),
             "repeatability_pose_sd": None if rep_cov is None else np.sqrt(np.diag(rep_cov)).tolist(),
             "repeatability_dof": rep_dof,
             "before": None if before is None else {k: f.as_json() for k, f in before.items()},

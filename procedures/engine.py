@@ -1,10 +1,11 @@
 """The engine: executes a procedure's messages against devices, journaling each result before going on.
 
 Devices (`procedures.station.Devices`) hold a `drivers.controller_base.ControllerInterface`, a
-`drivers.controller_modbus.ControllerParams` and a `drivers.cmm_base.CmmInterface`, the robot and the
-CMM alignment. Short link drop-outs are ridden through (`procedures.link_guard.LinkGuard`); a fault, a link
-that stays down or an operator abort stops motion, keeps the journal and raises `RunInterrupted` with the
-way to resume. An optional observer (the operator panel) is told of every message, result, pause and stop.
+`drivers.controller_modbus.ControllerParams`, the measuring instrument (`drivers.instrument.PoseInstrument`: a CMM
+or a laser tracker, each keeping its own alignment to the base) and the robot. Short link drop-outs are ridden
+through (`procedures.link_guard.LinkGuard`); a fault, a link that stays down or an operator abort stops motion, keeps
+the journal and raises `RunInterrupted` with the way to resume. An optional observer (the operator panel) is told of
+every message, result, pause and stop.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ from typing import Any
 import numpy as np
 import structlog
 
-from drivers.cmm_probing import REGISTERED_DEG, REGISTERED_MM
 from drivers.controller_modbus import CompensationBlock, ParameterSet
 from hilcal.protocols.controller_states import MOTION_STATES, ControllerState
 from hilcal.protocols.registers import Capability
@@ -81,13 +81,6 @@ class Engine:
         self.on_measure = on_measure
         self.observer = observer
         self.t0 = time.monotonic()
-        self.cmm_alignment = devices.cmm_alignment
-        """Where the probe patterns are laid out: the station's alignment, then each pose's registration on the
-        base spheres (only a prediction: every pose measures its base spheres again and is computed from them)."""
-        cmm_section = getattr(devices.station, "cmm", None)
-        self.alignment_tolerance: tuple[float, float] | None = None if cmm_section is None else (
-            cmm_section.alignment_tolerance_mm, cmm_section.alignment_tolerance_deg)
-        """How well `cmm_alignment` is known (mm, deg): the station's tolerance until a pose registered the base."""
         self._reads_temperature: bool | None = None
         self.guard = LinkGuard(devices, journal, links, approach_mm=approach_mm, move_timeout_s=move_timeout_s,
                                publish=self._publish)
@@ -193,9 +186,9 @@ class Engine:
         return np.asarray(self.devices.controller.feedback().lengths_mm, dtype=float)
 
     def _on_preparecmm(self, msg: m.PrepareCmm) -> None:
-        self.devices.cmm.start_session()
-        self.devices.cmm.home()
-        self.journal.event("cmm_ready")
+        instrument = self.devices.instrument
+        instrument.prepare()
+        self.journal.event(f"{instrument.link}_ready")
 
     def _on_enable(self, msg: m.Enable) -> None:
         if self.devices.controller.state not in MOTION_STATES:
@@ -230,13 +223,8 @@ class Engine:
         legs = np.asarray(self.devices.controller.feedback().lengths_mm, dtype=float)
         expected = np.array(msg.cmd_pose if msg.expected_pose is None else msg.expected_pose)
         cov = None if msg.pose_cov is None else np.reshape(msg.pose_cov, (6, 6))
-        registered = self.alignment_tolerance == (REGISTERED_MM, REGISTERED_DEG)
-        pm = self.devices.cmm.measure_pose(self.devices.robot, self.cmm_alignment, expected_pose=expected,
-                                           pose_cov=cov, alignment_tolerance=self.alignment_tolerance,
-                                           registered=registered)
-        self.cmm_alignment = pm.refined_alignment
-        self.alignment_tolerance = (REGISTERED_MM, REGISTERED_DEG)
-        detail = {"sphere_fit_rms_mm": float(np.max(pm.pose_fit.rms_residual_mm)), **pm.extra}
+        pm = self.devices.instrument.measure_pose(self.devices.robot, expected, cov)
+        detail = {"sphere_fit_rms_mm": pm.registration_rms_mm, **pm.extra}
         if temperature_c is not None:
             detail["temp_c"] = temperature_c
         row = self.journal.add_measurement(msg.phase, msg.index, time.monotonic() - self.t0, np.array(msg.cmd_pose),

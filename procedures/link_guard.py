@@ -5,8 +5,11 @@ every command but the e-stop, so nothing moves. The guard then holds (bounded by
 the last heartbeat), re-reads the controller when heartbeats return, refuses to go on after a fault or an
 e-stop, checks the platform is where it was told to be, and re-takes the interrupted pose from its approach
 point (every leg shorter by the approach distance) so the pose is still reached with every leg extending.
-CMM and Modbus errors get a bounded number of retries of the same (idempotent) message after a short wait.
-Every hold, retry and loss is journaled; `links_summary` turns the journal into the report's per-link lines.
+The measuring instrument's link errors (a CMM's or a laser tracker's: silence beyond the driver's own resends, a
+stream out of step, a lost connection) and Modbus errors get a bounded number of retries of the same (idempotent)
+message after a short wait. An error the instrument reports (a target not found, a registration that fails) is no
+link problem: it ends the run with the instrument's reason. Every hold, retry and loss is journaled; `links_summary`
+turns the journal into the report's per-link lines (the CMM's link is "cmm", the laser tracker's "tracker").
 """
 
 from __future__ import annotations
@@ -22,13 +25,15 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from drivers.cmm_base import CmmConnectionError, CmmProtocolError, CmmTimeout
 from drivers.controller_base import CommandTimeout, ControllerLost
 from drivers.controller_modbus import ModbusTransportError
+from drivers.tracker_base import TrackerConnectionError, TrackerProtocolError, TrackerTimeout
 from hilcal.protocols.controller_states import MOTION_STATES, ControllerState
 from procedures import messages as m
 from procedures.journal import Journal
 
 log = structlog.get_logger(__name__)
 
-LINKS = ("controller", "cmm", "modbus")
+LINKS = ("controller", "cmm", "tracker", "modbus")
+INSTRUMENT_LINKS = ("cmm", "tracker")
 
 
 class LinksSection(BaseModel):
@@ -41,6 +46,9 @@ class LinksSection(BaseModel):
     holds_per_message: int = Field(default=5, ge=0, le=100, description="holds of one message before the run ends")
     cmm_retries: int = Field(default=2, ge=0, le=10, description="new measurements after the driver's own retries")
     cmm_wait_s: float = Field(default=1.0, ge=0, le=60, description="wait before a CMM retry, s")
+    tracker_retries: int = Field(default=2, ge=0, le=10, description="new measurements after the tracker driver's "
+                                 "own new connections")
+    tracker_wait_s: float = Field(default=1.0, ge=0, le=60, description="wait before a tracker retry, s")
     modbus_retries: int = Field(default=3, ge=0, le=10, description="new attempts of a Modbus step after a drop")
     modbus_wait_s: float = Field(default=0.5, ge=0, le=60, description="wait before a Modbus retry, s")
 
@@ -65,6 +73,8 @@ def _link_of(error: BaseException) -> str | None:
         return "controller"
     if isinstance(error, CmmTimeout | CmmProtocolError | CmmConnectionError):
         return "cmm"
+    if isinstance(error, TrackerTimeout | TrackerProtocolError | TrackerConnectionError):
+        return "tracker"
     if isinstance(error, ModbusTransportError):
         return "modbus"
     return None
@@ -107,7 +117,7 @@ class LinkGuard:
 
     def _limit(self, link: str) -> int:
         return {"controller": self.links.holds_per_message, "cmm": self.links.cmm_retries,
-                "modbus": self.links.modbus_retries}[link]
+                "tracker": self.links.tracker_retries, "modbus": self.links.modbus_retries}[link]
 
     def _hold(self, link: str, msg: object, error: BaseException, attempt: int) -> np.ndarray | None:
         """Journal, wait for the link (bounded), check it; the leg lengths read if the pose must be re-taken."""
@@ -123,7 +133,8 @@ class LinkGuard:
         if link == "controller":
             lengths = self._recover_controller(msg, reason)
         else:
-            time.sleep(self.links.cmm_wait_s if link == "cmm" else self.links.modbus_wait_s)
+            time.sleep({"cmm": self.links.cmm_wait_s, "tracker": self.links.tracker_wait_s}.get(
+                link, self.links.modbus_wait_s))
         held_s = time.monotonic() - t0
         self.journal.event("link_recovered", link=link, message=what, attempt=attempt, held_s=held_s)
         log.info("link_recovered", link=link, message=what, held_s=round(held_s, 3))
@@ -174,9 +185,11 @@ class LinkGuard:
 
 
 def links_summary(journal: Journal) -> dict[str, dict[str, Any]]:
-    """Per link: holds, retakes, total and longest hold (s), and whether it was lost (over the whole journal)."""
+    """Per link: holds, retakes, total and longest hold (s), and whether it was lost (over the whole journal); of the
+    instrument links the one the run used (the tracker's when it was made ready, else the CMM's)."""
+    used = "tracker" if journal.count_events("tracker_ready") else "cmm"
     out = {link: {"holds": 0, "held_s": 0.0, "longest_hold_s": 0.0, "retakes": 0, "lost": False}
-           for link in LINKS}
+           for link in LINKS if link not in INSTRUMENT_LINKS or link == used}
     for event in journal.events("link_hold", "link_recovered", "link_lost", "link_retake"):
         data = event["data"]
         link = data.get("link", "controller")

@@ -36,7 +36,8 @@ class ReadLegs:
 
 @dataclass(frozen=True)
 class PrepareCmm:
-    """Start the CMM session and home the machine before the first probe."""
+    """Get the measuring instrument ready before the first pose: start the CMM session and home it, or initialise the
+    laser tracker and set its units, environment and reflector (``drivers.instrument.PoseInstrument.prepare``)."""
 
 
 @dataclass(frozen=True)
@@ -64,7 +65,7 @@ class Settle:
 
 @dataclass(frozen=True)
 class Measure:
-    """Measure the platform pose with the CMM and journal it before anything else moves; result: the row."""
+    """Measure the platform pose with the instrument and journal it before anything else moves; result: the row."""
 
     phase: str
     index: int

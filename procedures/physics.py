@@ -132,8 +132,11 @@ def _split(problems: list[str], held_out: AccuracySummary | None, diag: Any) -> 
 
 
 def decide(rec: Recording, robot: Robot, outcome: CalibrationOutcome, info: ControllerInfo, *, physics: bool,
-           joint_bound_mm: float = 10.0, offset_bound_mm: float = 20.0) -> PhysicsDecision:
-    """The upload's geometry and block for this run (see the module docstring)."""
+           joint_bound_mm: float = 10.0, offset_bound_mm: float = 20.0,
+           pose_sigma: tuple[float, float] | None = None) -> PhysicsDecision:
+    """The upload's geometry and block for this run (see the module docstring). ``pose_sigma`` (mm per position
+    coordinate, deg per orientation axis) states the instrument's pose noise as the diagnosis' yardstick (a laser
+    tracker's, from its MPE); None: the diagnosis' own (the CMM's sphere-fit residuals, the repeated poses)."""
     geo = outcome.identification
     geo_problems = plausibility(geo, joint_bound_mm, offset_bound_mm)
     without = outcome.after
@@ -143,7 +146,7 @@ def decide(rec: Recording, robot: Robot, outcome: CalibrationOutcome, info: Cont
     from hilcal.discovery import diagnose
     from hilcal.discovery.loadable import held_out_prediction, loadable_compensation
 
-    diag = diagnose(rec, robot)
+    diag = diagnose(rec, robot) if pose_sigma is None else diagnose(rec, robot, pose_sigma=pose_sigma)
     findings = list(diag.summary)
     if not diag.steps:
         geo_problems, gross = _split(geo_problems, without, diag)

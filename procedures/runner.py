@@ -53,19 +53,14 @@ from procedures.calibration_procedure import (
     calibration_procedure,
     to_parameter_set,
 )
-from procedures.certificate import (
-    SignoffContext,
-    finish_certificate,
-    record_signoff,
-    signoff_section,
-    signoff_settings,
-)
+from procedures.certificate import SignoffContext, finish_certificate, record_signoff, signoff_section, signoff_settings
 from procedures.engine import Engine, RunInterrupted
 from procedures.journal import Journal
 from procedures.link_guard import links_summary
 from procedures.plan import CalibrationPlan, PlanError, estimate_plan, load_plan, make_plan, save_plan
 from procedures.run_progress import adaptive_lines, bar_aside, combine_observers, terminal_progress
 from procedures.timing import TimingSection
+from procedures.tracker_section import instrument_options
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NOT_ACCEPTED = 0, 2, 3, 4
 
@@ -74,8 +69,9 @@ class SimulatorStartError(RuntimeError):
     """The simulated devices of a ``--sim`` run did not start (raised by a ``SimStation``)."""
 
 
-SimStation = Callable[[str | None, Path, str | None], AbstractContextManager[Any]]
-"""(sim_config, out_dir, robot_path) -> context manager that runs the simulated devices and yields their station."""
+SimStation = Callable[[str | None, Path, str | None, str | None], AbstractContextManager[Any]]
+"""(sim_config, out_dir, robot_path, instrument) -> context manager that runs the simulated devices (the instrument:
+"cmm", "tracker", or None for the simulator configuration's) and yields their station."""
 
 
 @dataclass(frozen=True)
@@ -312,6 +308,8 @@ class RunRequest:
     adaptive: AdaptiveOptions | None = None
     """Measure adaptively (``procedures.adaptive``): until the accuracy is proven, within the whole run's budget."""
     sim_station: SimStation | None = None
+    instrument: str | None = None
+    """The simulated instrument of a --sim run ("cmm" or "tracker"; None: the simulator configuration's)."""
     timing: TimingSection | None = None
     """The machine's timing for a --sim run (a real run reads the station file's [timing])."""
     on_estimate: Callable[[CalibrationPlan, TimeEstimate, TimingSection], None] | None = None
@@ -366,7 +364,7 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
                            "robot_path": None if req.robot_path is None else str(req.robot_path),
                            "station_path": None if req.station_path is None else str(req.station_path),
                            "sim_config": None if req.sim_config is None else str(req.sim_config),
-                           "physics": req.physics,
+                           "physics": req.physics, "instrument": req.instrument,
                            "adaptive": None if req.adaptive is None else req.adaptive.model_dump()}
                 adaptive = _adaptive_for(plan, robot, timing, options, test)
                 run_id, plan, options = plan_for_run(journal, plan, None, options)
@@ -383,7 +381,7 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
                 if req.sim_station is None:
                     raise ValueError("this run uses the simulated devices (--sim), but no simulator was given")
                 station = stack.enter_context(req.sim_station(options["sim_config"], req.out_dir,
-                                                              options["robot_path"]))
+                                                              options["robot_path"], options.get("instrument")))
             else:
                 station = load_station(req.station_path or options["station_path"])
             settings = signoff_settings(options, station)
@@ -420,10 +418,11 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
                 panel.view.show_plan(plan, robot, acceptance_poses,
                                      _announce(req, journal, plan, robot, timing, test, adaptive))
         run_options = RunOptions(estimator=options["estimator"], force=bool(options["force"]), acceptance=test,
-                                 physics=bool(options.get("physics", True)), adaptive=adaptive)
+                                 physics=bool(options.get("physics", True)), adaptive=adaptive,
+                                 **instrument_options(station, robot))
         _record_start(recorder, journal, req, run_id, started_at, robot, plan, operator, run_options.estimator)
         signoff = SignoffContext(operator, settings, test, bool(options["sim"]), options["robot_path"],
-                                 station.cmm.url)
+                                 station.instrument_address(), station.measuring_tracker())
         result = run_with_devices(devices, journal, plan, robot, run_options, req.out_dir, run_id, confirm,
                                   started_at, timing, None if panel is None else panel.observer, recorder, signoff,
                                   None if panel is not None else req.on_prompt)

@@ -92,8 +92,9 @@ class SignoffSettings(_Strict):
 
 
 def signoff_from_station(station: Any, path: str | Path | None) -> SignoffSettings:
-    """The sign-off settings of a validated ``StationConfig``."""
-    cmm = {k: getattr(station.cmm, k) for k in CmmIdentity.model_fields}
+    """The sign-off settings of a validated ``StationConfig`` (a laser tracker's identity, MPE and calibration come
+    from its ``[tracker]`` section when the certificate is made: ``procedures.certificate``)."""
+    cmm = {} if station.cmm is None else {k: getattr(station.cmm, k) for k in CmmIdentity.model_fields}
     return SignoffSettings(name=station.name, operator=station.operator, machine_serial=station.machine.serial,
                            acceptance=station.acceptance, cmm=CmmIdentity(**cmm),
                            station_file=None if path is None else str(path))
@@ -106,7 +107,7 @@ def sim_signoff(file: SignoffSettings, station: Any, station_file_given: bool) -
     A station file replaces the example limits as a whole (its [acceptance], or none); the CMM's identity and
     uncertainty fall back to the simulator's one by one.
     """
-    sim_cmm = {k: getattr(station.cmm, k) for k in CmmIdentity.model_fields}
+    sim_cmm = {k: None if station.cmm is None else getattr(station.cmm, k) for k in CmmIdentity.model_fields}
     cmm = {k: v if (v := getattr(file.cmm, k)) is not None else sim_cmm[k] for k in CmmIdentity.model_fields}
     from_sim = file.cmm.stated_uncertainty_mm is None and cmm["stated_uncertainty_mm"] is not None
     return file.model_copy(update={

@@ -1,8 +1,10 @@
 """Station configuration and device factory: the same code drives the simulator and the shop floor.
 
 A station file (TOML) says where the devices are; relative ``robot`` and ``records`` paths are relative to
-the file. ``open_devices(station)`` opens the controller (CAN), its parameter interface (Modbus) and the CMM,
-checks that the controller answers, and closes everything again on exit or if any of them fails to open.
+the file. ``open_devices(station)`` opens the controller (CAN), its parameter interface (Modbus) and the measuring
+instrument (the CMM, or with ``[instrument] kind = "tracker"`` the laser tracker of ``[tracker]``:
+``procedures.tracker_section``), checks that the controller answers, and closes everything again on exit or if any of
+them fails to open.
 
 Example::
 
@@ -25,6 +27,9 @@ Example::
     device_id = 1
     timeout_s = 1.0
 
+    [instrument]
+    kind = "cmm"                       # the default; "tracker": a laser tracker, [tracker] (procedures.tracker_section)
+
     [cmm]
     url = "/dev/ttyUSB0"               # any pyserial URL, e.g. socket://10.0.0.5:1294
     alignment = [1250.0, -3400.0, -820.0, 0.0, 0.0, 90.0]   # T_cmm<-base: [x, y, z, roll, pitch, yaw] or 4x4
@@ -44,7 +49,7 @@ Example::
 
     [links]                            # procedures.link_guard.LinksSection: riding through drop-outs
     heartbeat_grace_s = 1.0            # the run ends only after this long without a heartbeat
-    cmm_retries = 2
+    cmm_retries = 2                    # tracker_retries for a laser tracker
     modbus_retries = 3
 
     [timing]                           # procedures.timing.TimingSection: the machine's speed, for estimates
@@ -80,11 +85,14 @@ from drivers.cmm_serial import SerialCmm, SerialCmmConfig
 from drivers.cmm_types import DEFAULT_ALIGNMENT_DEG, DEFAULT_ALIGNMENT_MM
 from drivers.controller_can import ControllerCan
 from drivers.controller_modbus import ControllerParams
+from drivers.instrument import CmmPoseInstrument, PoseInstrument, TrackerPoseInstrument
+from drivers.tracker_emscon import EmsconTracker
 from hilcal.protocols.toml_text import toml_lines
 from hilcal.robot import Robot, RobotFileError, load_robot
 from procedures.link_guard import LinksSection
 from procedures.signoff import AcceptanceSection, CmmIdentity
 from procedures.timing import TimingSection
+from procedures.tracker_section import InstrumentSection, TrackerSection, alignment_list, tracker_from_channels
 
 log = structlog.get_logger(__name__)
 
@@ -149,18 +157,7 @@ class CmmSection(CmmIdentity):
     @field_validator("alignment")
     @classmethod
     def _transform(cls, v: list[Any]) -> list[Any]:
-        try:
-            a = np.asarray(v, dtype=float)
-        except (TypeError, ValueError):
-            a = np.zeros(0)
-        if a.shape not in ((6,), (4, 4)) or not np.all(np.isfinite(a)):
-            raise ValueError(
-                f"must be [x, y, z, roll, pitch, yaw] (mm, deg) or a 4x4 matrix of numbers, got {v!r}"[:200]
-            )
-        if a.shape == (4, 4) and not np.array_equal(a[3], [0.0, 0.0, 0.0, 1.0]):
-            raise ValueError("the last row of a 4x4 alignment must be [0, 0, 0, 1]")
-        as_transform(a)
-        return a.tolist()
+        return alignment_list(v)
 
     def alignment_matrix(self) -> np.ndarray:
         """(4, 4) T_cmm<-base."""
@@ -198,7 +195,9 @@ class StationConfig(_Strict):
     machine: MachineSection = Field(default_factory=MachineSection)
     can: CanSection
     modbus: ModbusSection
-    cmm: CmmSection
+    instrument: InstrumentSection = Field(default_factory=InstrumentSection)
+    cmm: CmmSection | None = None
+    tracker: TrackerSection | None = None
     motion: MotionSection = Field(default_factory=MotionSection)
     timing: TimingSection = Field(default_factory=TimingSection)
     links: LinksSection = Field(default_factory=LinksSection)
@@ -206,6 +205,24 @@ class StationConfig(_Strict):
     records: Path | RecordsSection | None = Field(default=None, description="folder or file of the run records, "
                                                   "or a [records] table with a database url")
     operator: str | None = None
+
+    @model_validator(mode="after")
+    def _its_instrument(self) -> StationConfig:
+        if self.instrument.kind == "cmm" and self.cmm is None:
+            raise ValueError("a station measured with a CMM ([instrument] kind = \"cmm\", the default) needs a [cmm] "
+                             "section (url, alignment); one with a laser tracker says [instrument] kind = \"tracker\"")
+        if self.instrument.kind == "tracker" and self.tracker is None:
+            raise ValueError("[instrument] kind = \"tracker\" needs a [tracker] section (host, alignment, "
+                             "environment, platform_targets_mm, base_monuments_mm)")
+        return self
+
+    def instrument_address(self) -> str:
+        """Where the station's measuring instrument is: the CMM's URL, or the tracker's host:port."""
+        return f"{self.tracker.host}:{self.tracker.port}" if self.measuring_tracker() else self.cmm.url
+
+    def measuring_tracker(self) -> TrackerSection | None:
+        """The laser tracker's section when the station measures with one (else None)."""
+        return self.tracker if self.instrument.kind == "tracker" else None
 
     def records_target(self) -> str | None:
         """The records database this station names: a URL, a SQLite file, or a folder's records.sqlite."""
@@ -271,7 +288,8 @@ def station_from_channels(channels: dict[str, Any], robot_path: str | Path | Non
 
     The robot is ``robot_path``, else the simulator's robot file, else the built-in robot; its name must be
     the simulator's robot (StationConfigError otherwise). The CMM's identity and stated uncertainty are the
-    simulator's, where it states them (a real station's come from its file).
+    simulator's, where it states them (a real station's come from its file); a simulated tracker's identity, MPE,
+    air, published alignment and target layouts likewise.
     """
     path = robot_path if robot_path is not None else channels.get("robot_path")
     try:
@@ -284,9 +302,13 @@ def station_from_channels(channels: dict[str, Any], robot_path: str | Path | Non
             f"{path or '<built-in>'} is {robot.name!r}"
         )
     try:
-        cmm = {"url": channels["cmm"]["url"], "alignment": channels["cmm_alignment"],
-               **{k: channels["cmm"][k] for k in ("identity", "stated_uncertainty_mm") if channels["cmm"].get(k)}}
-        data = {"robot": path, "can": channels["can"], "modbus": channels["modbus"], "cmm": cmm}
+        data = {"robot": path, "can": channels["can"], "modbus": channels["modbus"]}
+        if channels.get("instrument") == "tracker":
+            data.update(instrument={"kind": "tracker"}, tracker=tracker_from_channels(channels))
+        else:
+            data["cmm"] = {"url": channels["cmm"]["url"], "alignment": channels["cmm_alignment"],
+                           **{k: channels["cmm"][k] for k in ("identity", "stated_uncertainty_mm")
+                              if channels["cmm"].get(k)}}
     except (KeyError, TypeError) as err:
         raise StationConfigError(f"simulator channels: missing {err}") from None
     return station_from_dict({k: v for k, v in data.items() if v is not None}, "simulator channels")
@@ -300,13 +322,17 @@ class Devices:
     robot: Robot
     controller: ControllerCan
     params: ControllerParams
-    cmm: SerialCmm
-    cmm_alignment: np.ndarray
-    """(4, 4) T_cmm<-base from the station file."""
+    cmm: SerialCmm | None
+    cmm_alignment: np.ndarray | None
+    """(4, 4) T_cmm<-base from the station file (None: the station measures with a laser tracker)."""
+    instrument: PoseInstrument
+    """What measures the poses: the CMM or the laser tracker (``drivers.instrument``)."""
+    tracker: EmsconTracker | None = None
     _stack: ExitStack = field(default_factory=ExitStack, repr=False)
 
     def close(self) -> None:
-        """Close the CMM, the parameter interface and the CAN link (idempotent); device states are left as they are."""
+        """Close the instrument, the parameter interface and the CAN link (idempotent); device states are left as
+        they are."""
         self._stack.close()
 
     def __enter__(self) -> Devices:
@@ -319,7 +345,7 @@ class Devices:
 
 
 def open_devices(station: StationConfig, *, check: bool = True) -> Devices:
-    """Open the controller (CAN), its parameter interface (Modbus) and the CMM of a station.
+    """Open the controller (CAN), its parameter interface (Modbus) and the measuring instrument of a station.
 
     With ``check`` the controller must send a heartbeat within ``motion.connect_timeout_s`` and the Modbus
     device must identify as a compatible controller. DeviceOpenError (naming the device) if anything fails;
@@ -353,14 +379,29 @@ def open_devices(station: StationConfig, *, check: bool = True) -> Devices:
                 params.read_identity()
         except Exception as err:
             raise DeviceOpenError(f"controller parameters (Modbus {mb.host or mb.serial_port}): {err}") from err
+        tracker, cmm, alignment = None, None, None
+        t = station.measuring_tracker()
         try:
-            cmm = SerialCmm(station.cmm.url, station.cmm.serial, station.cmm.probing)
-            stack.callback(cmm.close)
+            if t is not None:
+                tracker = EmsconTracker(t.emscon_config())
+                stack.callback(tracker.close)
+                platform, base = t.layouts()
+                instrument: PoseInstrument = TrackerPoseInstrument(
+                    tracker, station.instrument_address(), t.alignment_matrix(),
+                    (t.alignment_tolerance_mm, t.alignment_tolerance_deg), platform, base, t.environment_setting(),
+                    t.reflector, t.search)
+            else:
+                cmm = SerialCmm(station.cmm.url, station.cmm.serial, station.cmm.probing)
+                stack.callback(cmm.close)
+                alignment = station.cmm.alignment_matrix()
+                instrument = CmmPoseInstrument(cmm, station.cmm.url, alignment, (station.cmm.alignment_tolerance_mm,
+                                                                                  station.cmm.alignment_tolerance_deg))
         except Exception as err:
-            raise DeviceOpenError(f"CMM ({station.cmm.url}): {err}") from err
-        devices = Devices(station, robot, controller, params, cmm, station.cmm.alignment_matrix(), stack.pop_all())
+            what = "laser tracker" if t is not None else "CMM"
+            raise DeviceOpenError(f"{what} ({station.instrument_address()}): {err}") from err
+        devices = Devices(station, robot, controller, params, cmm, alignment, instrument, tracker, stack.pop_all())
     log.info("station_devices_opened", robot=robot.name, can=station.can.bus_config().get("channel"),
-             modbus=params.endpoint, cmm=station.cmm.url)
+             modbus=params.endpoint, instrument=station.instrument.kind, address=station.instrument_address())
     return devices
 
 

@@ -39,6 +39,10 @@ Example configuration (every key optional; relative paths are relative to the fi
     search_radius_mm = 50.0         # the ATR search radius at power-up
     alignment_error_mm = 2.0        # error of the published T_tracker<-base (a station's rough set-up)
     alignment_error_deg = 0.02
+    platform_targets_mm = [[1000.0, 0.0, 100.0], [-500.0, 866.03, 100.0], [-500.0, -866.03, 100.0]]  # the nests
+    base_monuments_mm = [[2500.0, 1443.38, 100.0], [-2500.0, 1443.38, 100.0], [0.0, -2886.75, 100.0]]
+                                    # default: four of each around the robot file's spheres (published as the truth)
+    hang_after_commands = 400       # a fault: it answers nothing from its 401st command on (default: never)
     [tracker.air]                   # the true air (the tracker corrects for what the client sets)
     temperature_c = 20.0
     pressure_hpa = 1013.25
@@ -139,12 +143,19 @@ class SimCmmConfig(CmmServerConfig):
 
 
 class SimTrackerConfig(TrackerServerConfig):
-    """TrackerServerConfig with fast defaults and the error of the published tracker alignment (a station's rough
-    set-up, as for the CMM)."""
+    """TrackerServerConfig with fast defaults, the error of the published tracker alignment (a station's rough
+    set-up, as for the CMM), and the targets: reflectors in the platform's nests and on the base monuments, whose
+    layouts the simulator publishes as a survey gives them (the truth)."""
 
     time_scale: float = Field(default=0.0005, ge=0, description="multiplies every tracker duration; 0 = instant")
     alignment_error_mm: float = Field(default=2.0, ge=0, description="offset of the published T_tracker<-base")
     alignment_error_deg: float = Field(default=0.02, ge=0, description="rotation error of the published alignment")
+    platform_targets_mm: list[tuple[float, float, float]] | None = Field(
+        default=None, min_length=3, description="nests on the platform (platform frame); None: four around the robot "
+        "file's platform spheres (sim_devices.tracker.targets.default_targets)")
+    base_monuments_mm: list[tuple[float, float, float]] | None = Field(
+        default=None, min_length=3, description="monuments on the floor (base frame); None: four around the robot "
+        "file's base spheres")
 
     def identity(self) -> str:
         """The tracker as a certificate names it: what it is and its MPE."""
@@ -153,7 +164,8 @@ class SimTrackerConfig(TrackerServerConfig):
 
     def server_config(self, default_seed: int) -> TrackerServerConfig:
         """The TrackerServerConfig to start the server with (seed: the rig seed unless set here)."""
-        data = self.model_dump(exclude={"alignment_error_mm", "alignment_error_deg"})
+        data = self.model_dump(exclude={"alignment_error_mm", "alignment_error_deg", "platform_targets_mm",
+                                        "base_monuments_mm"})
         if "seed" not in self.model_fields_set:
             data["seed"] = default_seed
         return TrackerServerConfig.model_validate(data)

@@ -26,7 +26,7 @@ from sim_devices.sim_config import SimConfig
 from sim_devices.sim_state import DEFAULT_LOCK_TIMEOUT_S, PersistentController, StateStore, restore_rig
 from sim_devices.tracker.config import Station
 from sim_devices.tracker.server import TrackerServerHandle, start_tracker_server
-from sim_devices.tracker.targets import rig_reflectors
+from sim_devices.tracker.targets import default_targets, layout_reflectors
 
 log = structlog.get_logger(__name__)
 
@@ -76,6 +76,15 @@ def _spoiled(T: np.ndarray, error_mm: float, error_deg: float, seed: list[int]) 
     return T @ spoil
 
 
+def tracker_targets(config: SimConfig, robot: Robot) -> tuple[np.ndarray, np.ndarray]:
+    """(platform nests (M, 3) in the platform frame, base monuments (K, 3) in the base frame), mm: the configuration's,
+    else four of each around the robot file's spheres."""
+    platform, base = default_targets(robot)
+    t = config.tracker
+    return (platform if t.platform_targets_mm is None else np.array(t.platform_targets_mm, dtype=float),
+            base if t.base_monuments_mm is None else np.array(t.base_monuments_mm, dtype=float))
+
+
 class SimHandle:
     """The running simulator: ``controller``, ``controller_servers``, ``rig``, and the instrument's server:
     ``cmm_server`` and its ``alignment``, or ``tracker_server`` and its ``tracker_alignment`` (the other is None)."""
@@ -103,6 +112,8 @@ class SimHandle:
         self.restored = restored
         """True when the controller and rig state came from an existing state file."""
         cmm, tracker = config.cmm, config.tracker
+        self.tracker_targets = tracker_targets(config, robot)
+        """(platform nests, base monuments) mm: where the simulated tracker's reflectors sit (the truth)."""
         self.alignment = published_alignment(rig, cmm.alignment_error_mm, cmm.alignment_error_deg, config.rig.seed)
         self.tracker_alignment = published_tracker_alignment(
             tracker.station, tracker.alignment_error_mm, tracker.alignment_error_deg, config.rig.seed)
@@ -132,6 +143,8 @@ class SimHandle:
                               "mpe_constant_um": t.mpe_constant_um, "mpe_per_m_um": t.mpe_per_m_um,
                               "air": t.air.model_dump()}
             out["tracker_alignment"] = self.tracker_alignment.tolist()
+            out["tracker_targets"] = {"platform_targets_mm": self.tracker_targets[0].tolist(),
+                                      "base_monuments_mm": self.tracker_targets[1].tolist()}
         if servers.modbus_rtu_path is not None:
             out["modbus_rtu"] = {"serial_port": servers.modbus_rtu_path, "baudrate": 115200,
                                  "device_id": self.config.controller.device_id}
@@ -186,7 +199,8 @@ def start_sim(config: SimConfig | None = None, *, lock_timeout_s: float = DEFAUL
         servers = serve_controller(controller)
         view = LockedRigView(rig, controller)
         if cfg.instrument == "tracker":
-            tracker = start_tracker_server(rig_reflectors(robot, view), cfg.tracker.server_config(cfg.rig.seed))
+            tracker = start_tracker_server(layout_reflectors(*tracker_targets(cfg, robot), view),
+                                           cfg.tracker.server_config(cfg.rig.seed))
         else:
             cmm = start_cmm_server(robot, cast(SimulatedRig, view), cfg.cmm.server_config(cfg.rig.seed))
     except BaseException:

@@ -188,6 +188,29 @@ def _software(sw: Mapping[str, Any]) -> str:
     return f"{_esc(sw.get('name'))} {_esc(sw.get('version'))}, git {revision}{modified}"
 
 
+def _instrument_rows(inst: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """The instrument and what its uncertainty is: a CMM's stated U per sphere-centre coordinate, a laser tracker's
+    MPE read as U per coordinate of a point at its distance."""
+    where = f" ({_esc(inst.get('url'))})" if inst.get("url") else ""
+    if inst.get("kind") != "tracker":
+        stated = inst.get("stated_uncertainty_mm")
+        return [("coordinate measuring machine", f"{_esc(inst.get('cmm'))}{where}"),
+                ("stated uncertainty", "not stated" if stated is None else
+                 f"U = {_num(stated, 4)} mm (k = 2) per sphere-centre coordinate "
+                 f"({_esc(inst.get('uncertainty_source'))})")]
+    u, d, air = inst.get("point_uncertainty_mm") or {}, inst.get("target_distance_mm") or {}, inst.get("air") or {}
+    return [("laser tracker", f"{_esc(inst.get('tracker'))}{where}"),
+            ("maximum permissible error", f"MPE = ±({_esc(inst.get('mpe_constant_um'))} µm + "
+             f"{_esc(inst.get('mpe_per_m_um'))} µm/m), read as the expanded uncertainty U (k = 2) of each "
+             f"coordinate of a measured point at its distance from the tracker: U = {_num(u.get('min'), 4)} to "
+             f"{_num(u.get('max'), 4)} mm over its {_esc(inst.get('n_platform_targets'))} platform targets and "
+             f"{_esc(inst.get('n_base_monuments'))} base monuments, {_num((d.get('min') or 0) / 1000, 2)} to "
+             f"{_num((d.get('max') or 0) / 1000, 2)} m away ({_esc(inst.get('uncertainty_source'))})"),
+            ("air set on the tracker", "–" if not air else f"{_num(air.get('temperature_c'), 1)} °C, "
+             f"{_num(air.get('pressure_hpa'), 1)} hPa, {_num(air.get('humidity_pct'), 0)} % relative humidity "
+             "(its distances are corrected for the refraction of this air)")]
+
+
 def certificate_html(report: Mapping[str, Any]) -> str:
     """The certificate page of one run's report.json (with its sign-off keys)."""
     cert = report.get("certificate") or {}
@@ -198,7 +221,6 @@ def certificate_html(report: Mapping[str, Any]) -> str:
     temp = env.get("temperature_c")
     temperature = _esc(env.get("note")) if not temp else (
         f"{_num(temp['mean'], 2)} °C (from {_num(temp['min'], 2)} to {_num(temp['max'], 2)} °C, {temp['n']} readings)")
-    stated = inst.get("stated_uncertainty_mm")
     due = _esc(inst.get("calibration_due")) + (" – <b>OVERDUE</b>" if inst.get("overdue") else "")
     warn = "".join(f"<div class='warn'>{_esc(w)}</div>" for w in warnings)
     return f"""<!doctype html><html lang="en"><head><meta charset="utf-8">
@@ -215,10 +237,7 @@ platform, hardware in the loop (hilcal)</div></div>
     ("run", f"{_esc(report.get('run_id'))}: {_when(times.get('started_at'))} to {_when(times.get('finished_at'))}"),
 ])}</section>
 <section><h2>Instrument, environment and method</h2>{_kv([
-    ("coordinate measuring machine", f"{_esc(inst.get('cmm'))}" + (f" ({_esc(inst.get('url'))})"
-                                                                    if inst.get("url") else "")),
-    ("stated uncertainty", "not stated" if stated is None else
-     f"U = {_num(stated, 4)} mm (k = 2) per sphere-centre coordinate ({_esc(inst.get('uncertainty_source'))})"),
+    *_instrument_rows(inst),
     ("its calibration due", due),
     ("temperature", temperature),
     ("method", f"{_esc(method.get('model'))}-parameter rigid geometric model"
@@ -237,7 +256,8 @@ platform, hardware in the loop (hilcal)</div></div>
 <section><h2>Compensation beyond the geometry</h2>{_compensation(report)}</section>
 <section><h2>Uploaded parameter set</h2>{_upload(report)}</section>
 <section><p class="small">The expanded uncertainties U are the standard uncertainties multiplied by the coverage
-factor k = 2 (GUM), from the CMM's stated uncertainty and the scatter of the poses measured more than once in this run,
+factor k = 2 (GUM), from the {"laser tracker's MPE" if inst.get("kind") == "tracker" else "CMM's stated uncertainty"}
+and the scatter of the poses measured more than once in this run,
 propagated by seeded Monte Carlo (hilcal docs/certificate.md). The results hold for the machine as measured under
 the conditions above. This certificate may only be copied in full.</p>
 <div class="sig"><div>Calibrated by: {_esc(report.get('operator'))}<br>date and signature</div>

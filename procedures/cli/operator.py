@@ -20,6 +20,11 @@ class PhysicsChoice(enum.StrEnum):
     off = "off"
 
 
+class InstrumentChoice(enum.StrEnum):
+    cmm = "cmm"
+    tracker = "tracker"
+
+
 RunRobotOption = Annotated[Path | None, typer.Option("--robot", help=(
     "robot TOML file; the station file's robot and the simulator's (--sim-config) must be the same robot, by content "
     "(refused before anything starts otherwise); default: theirs, else the built-in paper Table 1 robot"))]
@@ -32,6 +37,10 @@ def run(
                                                  "only its \\[timing], sign-off settings and robot (which must be "
                                                  "the simulator's) are used")] = None,
     sim_config: Annotated[Path | None, typer.Option(help="simulator TOML for --sim")] = None,
+    instrument: Annotated[InstrumentChoice | None, typer.Option(help="with --sim: measure with the simulated CMM or "
+                                                                "laser tracker (default: the simulator config's, "
+                                                                "else the CMM); a station file names its own "
+                                                                "(\\[instrument] kind)")] = None,
     resume: Annotated[str | None, typer.Option(help="continue the interrupted run RUN_ID in --out")] = None,
     yes: Annotated[bool, typer.Option("--yes", help="unattended: answer every prompt yes")] = False,
     estimator: Annotated[EstimatorChoice, typer.Option(help="parameters to upload")] = EstimatorChoice.ls,
@@ -76,6 +85,9 @@ def run(
 
     if resume is None and not sim and station is None:
         fail("give --station FILE for real hardware, or --sim for the simulated devices")
+    if instrument is not None and (not sim or resume is not None):
+        fail("--instrument chooses the simulated instrument of a new --sim run; a station file names its own "
+             "([instrument] kind), and a resumed run keeps the one it started with")
     if not adaptive and (target_mm is not None or max_minutes is not None):
         fail("--target-mm and --max-minutes belong to an adaptive run: add --adaptive")
     if resume is not None and adaptive:
@@ -91,6 +103,7 @@ def run(
         operator = ask_operator()
     request = RunRequest(out_dir=out_dir, sim=sim, station_path=station, sim_config=sim_config, resume=resume,
                          yes=yes, estimator=estimator.value, force=force, robot_path=robot, plan_path=plan,
+                         instrument=None if instrument is None else instrument.value,
                          seed=seed, records_path=records, operator=operator, sim_station=sim_station, timing=timing,
                          on_estimate=print_run_estimate, acceptance=None if acceptance is None else acceptance.value,
                          cycles=cycles, physics=physics is PhysicsChoice.on, on_prompt=_print_prompt_detail,

@@ -120,7 +120,7 @@ class RunView:
             else:
                 self._at_pose(match["phase"], int(match["pose"]) - 1, f"moving ({match['step']})")
         elif isinstance(msg, m.Measure):
-            self._at_pose(msg.phase, msg.index, "measuring with the CMM")
+            self._at_pose(msg.phase, msg.index, "measuring the pose")
         elif isinstance(msg, m.PrepareCmm):
             self.live.update("cmm", session="starting")
             self._set_progress(activity=ACTIVITY["PrepareCmm"])
@@ -139,7 +139,7 @@ class RunView:
                 self._set_progress(activity="identifying (least squares and L-infinity)")
         elif isinstance(msg, m.PrepareCmm):
             self.live.update("cmm", session="ready", homed_at=time.time())
-            self.live.note("CMM session started and homed")
+            self.live.note("measuring instrument ready (CMM homed, or laser tracker initialised)")
         elif isinstance(msg, m.Upload):
             self.live.set("upload", {"outcome": result.get("outcome"), "sha256": result.get("sha256"),
                                      "record": result.get("record"), "save_record": result.get("save_record")})

@@ -7,6 +7,7 @@ May import ``hilcal.protocols``, ``hilcal.robot``, ``sim_devices.config_base`` a
 
 from sim_devices.tracker.config import Station, TrackerServerConfig
 from sim_devices.tracker.server import TrackerServerHandle, start_tracker_server
-from sim_devices.tracker.targets import rig_reflectors
+from sim_devices.tracker.targets import default_targets, layout_reflectors, rig_reflectors
 
-__all__ = ["Station", "TrackerServerConfig", "TrackerServerHandle", "rig_reflectors", "start_tracker_server"]
+__all__ = ["Station", "TrackerServerConfig", "TrackerServerHandle", "default_targets", "layout_reflectors",
+           "rig_reflectors", "start_tracker_server"]

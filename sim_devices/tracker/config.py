@@ -101,3 +101,6 @@ class TrackerServerConfig(Strict):
     delay_s: float = Field(default=0.5, gt=0, description="how late a DELAY fault's answer is (real seconds)")
     garbage_packets: int = Field(default=2, ge=1, le=20, description="packets per GARBAGE fault")
     faults: FaultRates = Field(default_factory=FaultRates)
+    hang_after_commands: int | None = Field(default=None, ge=0, description="the tracker answers nothing from its "
+                                            "command number N + 1 on, over every connection (a tracker that hangs "
+                                            "until it is restarted); None: never")

@@ -1,4 +1,5 @@
-"""Fault injection for the simulated tracker: seeded per-command rates plus one-shot injections, drawn per command.
+"""Fault injection for the simulated tracker: seeded per-command rates plus one-shot injections, drawn per command,
+and a hang (silence from some command on).
 
 Faults: unknown packets before the answer, a cut answer, silence, a late answer, a beam break during a measurement
 (see ``sim_devices.tracker.config.Fault``).
@@ -37,9 +38,11 @@ NO_FAULTS = FaultPlan()
 class FaultInjector:
     """Seeded fault rates plus one-shot injections; thread-safe, changeable while the server runs."""
 
-    def __init__(self, rates: FaultRates, seed: int) -> None:
+    def __init__(self, rates: FaultRates, seed: int, hang_after: int | None = None) -> None:
         self._lock = threading.Lock()
         self._rates = rates
+        self._hang_after = hang_after
+        self._drawn = 0
         self._pending: Counter[tuple[Fault, str | None]] = Counter()
         self._rng = np.random.default_rng([seed, 0x7AC])
         self.applied: Counter[Fault] = Counter()
@@ -70,6 +73,10 @@ class FaultInjector:
     def draw(self, command: str) -> FaultPlan:
         """Decide the faults of the next command (no rates and nothing pending: none, drawing no random number)."""
         with self._lock:
+            self._drawn += 1
+            if self._hang_after is not None and self._drawn > self._hang_after:
+                self.applied[Fault.SILENCE] += 1
+                return FaultPlan(silence=True)
             if not any(self._pending.values()) and not any(getattr(self._rates, f.value) for f in Fault):
                 return NO_FAULTS
             chosen: dict[Fault, bool] = {}

@@ -123,7 +123,7 @@ class TrackerServerHandle:
 
     def __init__(self, config: TrackerServerConfig, reflectors: Callable[[], np.ndarray]) -> None:
         self.config = config
-        self.faults = FaultInjector(config.faults, config.seed)
+        self.faults = FaultInjector(config.faults, config.seed, config.hang_after_commands)
         self.machine = TrackerMachine(config, reflectors)
         self.host = HOST
         self.commands_handled = 0

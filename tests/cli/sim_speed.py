@@ -1,6 +1,7 @@
 """Simulator and station settings for runs whose test does not depend on machine time: the servo moves 1e5 times
-faster than real time, the CMM probes at once and the station waits no settle time (its servo has settled long
-before), so a whole `hilcal run --sim` costs the engine, driver and protocol work only (docs/benchmarks_run.md);
+faster than real time, the CMM probes (and the laser tracker measures) at once and the station waits no settle time
+(its servo has settled long before), so a whole `hilcal run --sim` costs the engine, driver and protocol work only
+(docs/benchmarks_run.md);
 tests/cli/conftest.py's `instant_plan` is the default plan without the settle wait.
 The rig's clock follows the servo's, so its temperature is held (a drift of 1 K/h would be tens of K per second)."""
 
@@ -13,8 +14,11 @@ DEVICES_INSTANT = """
 time_scale = 100000.0
 [cmm]
 time_scale = 0.0
+[tracker]
+time_scale = 0.0
 """
-"""The servo and the CMM near-instant, for a configuration that has its own [rig] (a twin's)."""
+"""The servo and the instrument (the CMM, or the tracker) near-instant, for a configuration that has its own [rig] (a
+twin's)."""
 
 INSTANT_SIM = DEVICES_INSTANT + """[rig.temperature]
 drift_k_per_h = 0.0

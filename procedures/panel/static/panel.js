@@ -290,7 +290,8 @@ function renderStation() {
   $("ctl-modbus").textContent = c.modbus || "-";
   const age = cmm.last_pose_at ? ` · last pose ${dur(Date.now() / 1000 - cmm.last_pose_at)} ago` : "";
   const err = cmm.last_error ? ` · <span class="bad">${esc(cmm.last_error)}</span>` : "";
-  $("cmm-link").innerHTML = `${esc(cmm.session || "-")}${age}${err} <span class="sub">${esc(cmm.url || "")}</span>`;
+  const what = cmm.kind === "tracker" ? "laser tracker " : "";
+  $("cmm-link").innerHTML = `${esc(cmm.session || "-")}${age}${err} <span class="sub">${what}${esc(cmm.url || "")}</span>`;
 }
 
 function renderProgress() {

@@ -1,0 +1,131 @@
+"""The measuring instrument of a run behind one small interface: a CMM or a laser tracker measures the platform pose.
+
+The engine asks the instrument to get ready (``prepare``) and to measure the pose where the run's model expects it
+(``measure_pose(robot, expected_pose, pose_cov)``), and journals what comes back (``MeasuredPose``). Each instrument
+keeps its own alignment to the base frame: the station's approximate one, known to its tolerance, until a pose has
+registered the base; then each pose's registration (only a prediction: every pose measures the base again). ``link``
+names the instrument's link for the link guard and the report (``"cmm"``, ``"tracker"``).
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import structlog
+
+from drivers.cmm_base import CmmInterface
+from drivers.cmm_probing import REGISTERED_DEG, REGISTERED_MM
+from drivers.tracker_base import Environment, TrackerDriverError, TrackerInterface
+from drivers.tracker_pose import TrackerPoseConfig, TrackerPoser
+from hilcal.robot import Robot
+
+log = structlog.get_logger(__name__)
+
+
+class InstrumentSetupError(TrackerDriverError):
+    """The instrument cannot be set up as the station says (a reflector the tracker does not know)."""
+
+
+@dataclass(frozen=True)
+class MeasuredPose:
+    """One measured platform pose, as the engine journals it."""
+
+    pose: np.ndarray
+    """(6,) [x, y, z mm, roll, pitch, yaw deg] of the platform in the base frame."""
+    registration_rms_mm: float
+    """The larger RMS residual of the platform and base registrations (journaled as ``sphere_fit_rms_mm``)."""
+    refined_alignment: np.ndarray
+    """(4, 4) T_instrument<-base registered on this pose's base points."""
+    extra: dict[str, Any] = field(default_factory=dict)
+    """What the measurement met (touches and searches; a tracker's searches, re-measures, stated deviations)."""
+
+
+class PoseInstrument(abc.ABC):
+    """An instrument that measures platform poses; subclasses wrap a CMM or a laser tracker."""
+
+    kind: str
+    link: str
+    address: str
+    """Where it is (a serial URL, host:port), for the panel and the certificate."""
+
+    @abc.abstractmethod
+    def prepare(self) -> None:
+        """Get ready to measure (start, home or initialise, settings); safe to repeat."""
+
+    @abc.abstractmethod
+    def measure_pose(self, robot: Robot, expected_pose: np.ndarray, pose_cov: np.ndarray | None) -> MeasuredPose:
+        """Measure the platform where the run's model expects it (its pose and the covariance of [dt mm; dw rad])."""
+
+
+class CmmPoseInstrument(PoseInstrument):
+    """A CMM: the robot file's tooling spheres, probed by ``drivers.cmm_probing``."""
+
+    kind = link = "cmm"
+
+    def __init__(self, cmm: CmmInterface, address: str, alignment: np.ndarray,
+                 tolerance: tuple[float, float] | None) -> None:
+        self.cmm = cmm
+        self.address = address
+        self.alignment = np.asarray(alignment, dtype=float)
+        self.tolerance = tolerance
+        """How well ``alignment`` is known (mm, deg): the station's tolerance until a pose registered the base."""
+
+    def prepare(self) -> None:
+        self.cmm.start_session()
+        self.cmm.home()
+
+    def measure_pose(self, robot: Robot, expected_pose: np.ndarray, pose_cov: np.ndarray | None) -> MeasuredPose:
+        registered = self.tolerance == (REGISTERED_MM, REGISTERED_DEG)
+        pm = self.cmm.measure_pose(robot, self.alignment, expected_pose=expected_pose, pose_cov=pose_cov,
+                                   alignment_tolerance=self.tolerance, registered=registered)
+        self.alignment, self.tolerance = pm.refined_alignment, (REGISTERED_MM, REGISTERED_DEG)
+        return MeasuredPose(np.asarray(pm.pose, dtype=float), float(np.max(pm.pose_fit.rms_residual_mm)),
+                            pm.refined_alignment, dict(pm.extra))
+
+
+class TrackerPoseInstrument(PoseInstrument):
+    """A laser tracker: the station's platform targets and base monuments, found by ``drivers.tracker_pose``."""
+
+    kind = link = "tracker"
+
+    def __init__(self, tracker: TrackerInterface, address: str, alignment: np.ndarray,
+                 tolerance: tuple[float, float], platform_targets_mm: np.ndarray, base_monuments_mm: np.ndarray,
+                 environment: Environment, reflector: str | int, config: TrackerPoseConfig | None = None) -> None:
+        self.tracker = tracker
+        self.address = address
+        self.alignment = np.asarray(alignment, dtype=float)
+        self.tolerance = tolerance
+        self.alignment_cov: np.ndarray | None = None
+        """The registration's covariance once a pose registered the base (then the tolerance no longer applies)."""
+        self.platform_targets = np.asarray(platform_targets_mm, dtype=float)
+        self.base_monuments = np.asarray(base_monuments_mm, dtype=float)
+        self.environment = environment
+        self.reflector = reflector
+        self.poser = TrackerPoser(tracker, config)
+
+    def _reflector_id(self) -> int:
+        known = self.tracker.reflectors()
+        for r in known:
+            if self.reflector == r.reflector_id or (isinstance(self.reflector, str)
+                                                    and self.reflector.strip().lower() == r.name.strip().lower()):
+                return r.reflector_id
+        listed = ", ".join(f"{r.reflector_id} {r.name!r}" for r in known) or "none"
+        raise InstrumentSetupError(f"the tracker knows no reflector {self.reflector!r} (it lists: {listed}): set "
+                                   "[tracker] reflector to one of them")
+
+    def prepare(self) -> None:
+        self.tracker.initialize()
+        self.tracker.setup(self.environment, self._reflector_id())
+        self.poser.forget_settings()
+        log.info("tracker.ready", address=self.address, reflector=self.reflector,
+                 environment=vars(self.environment))
+
+    def measure_pose(self, robot: Robot, expected_pose: np.ndarray, pose_cov: np.ndarray | None) -> MeasuredPose:
+        pm = self.poser.measure_pose(self.platform_targets, self.base_monuments, self.alignment, expected_pose,
+                                     pose_cov, alignment_tolerance=self.tolerance, alignment_cov=self.alignment_cov)
+        self.alignment, self.alignment_cov = pm.refined_alignment, pm.refined_cov
+        return MeasuredPose(np.asarray(pm.pose, dtype=float), float(np.max(pm.pose_fit.rms_residual_mm)),
+                            pm.refined_alignment, dict(pm.extra))
