@@ -14,6 +14,7 @@ import numpy as np
 from hilcal.error_models import MODELS, forward_jacobian, paper60_jacobian
 from hilcal.kinematics import N_LEGS, Geometry, leg_vectors, split_pose
 from hilcal.robot import Robot
+from hilcal.stations import StationFrames
 
 RANK_TOL = 1e-9
 WEAK_TOL = 1e-2
@@ -40,6 +41,8 @@ class IdentifiabilityReport:
     weak: tuple[Direction, ...]
     weak_explained: tuple[str, ...]
     group_ranks: dict[str, int]
+    n_stations: int = 1
+    """Instrument stations; every one but the first has its frame fitted too (projected out here)."""
 
 
 def _jacobian(robot: Robot, poses: np.ndarray, model: str, length_mm: float) -> np.ndarray:
@@ -118,12 +121,17 @@ def _explain_weak(
 
 
 def identifiability(
-    robot: Robot, poses: np.ndarray, model: str = "42", length_mm: float | None = None, max_listed: int = 8
+    robot: Robot, poses: np.ndarray, model: str = "42", length_mm: float | None = None, max_listed: int = 8,
+    stations: np.ndarray | None = None,
 ) -> IdentifiabilityReport:
-    """Rank, condition and the unidentifiable and weak directions of an error model over a pose set."""
+    """Rank, condition and the unidentifiable and weak directions of an error model over a pose set; with each
+    pose's instrument station, of the model once every station's frame but the first is fitted too."""
     spec = MODELS[model]
     lc = robot.characteristic_length_mm if length_mm is None else length_mm
     J = _jacobian(robot, np.atleast_2d(poses), model, lc)
+    frames = None if stations is None else StationFrames.of(stations, np.atleast_2d(poses), lc, robot.home[:3])
+    if frames is not None:
+        J = frames.project(np.zeros(J.shape[0]), J)[1]
     c = np.linalg.norm(J, axis=0)
     c = np.where(c > 0, c, 1.0)
     _, s, Vt = np.linalg.svd(J / c, full_matrices=True)
@@ -149,7 +157,7 @@ def identifiability(
         model=model, n_poses=int(np.atleast_2d(poses).shape[0]), n_params=spec.size, rank=rank,
         condition_number=cond, singular_values=rel, unidentifiable=directions(null), weak=directions(weak),
         weak_explained=_explain_weak(robot, poses, Vt, c, len(weak), rank) if model == "42" else (),
-        group_ranks=group_ranks,
+        group_ranks=group_ranks, n_stations=1 if frames is None else len(frames.free) + 1,
     )
 
 
@@ -157,7 +165,9 @@ def format_report(rep: IdentifiabilityReport) -> str:
     """Plain-text report for the CLI."""
     lines = [
         f"Identifiability of the {rep.n_params}-parameter model over {rep.n_poses} poses "
-        "(column-scaled identification Jacobian, forward pose-error formulation)",
+        "(column-scaled identification Jacobian, forward pose-error formulation)"
+        + ("" if rep.n_stations == 1 else f", {rep.n_stations} instrument stations: every one's frame but the "
+           "first's fitted too"),
         f"  rank: {rep.rank} of {rep.n_params}"
         + ("  (all parameters identifiable)" if rep.rank == rep.n_params
            else f"  ({rep.n_params - rep.rank} unidentifiable directions)"),

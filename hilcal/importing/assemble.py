@@ -224,11 +224,12 @@ def _align(rows: list[_FileRows], mapping: ImportMap, robot: Robot | None) -> tu
                           "[frame] alignment)")) from None
             out.append(dataclasses.replace(r, meas=meas))
     if mode == "per_file" and len(rows) > 1:
-        notes.append("[frame] per_file: each file's instrument frame is fitted on its own rows with the nominal "
-                     "geometry, so each takes up a different part of the geometric errors; `hilcal diagnose` may see "
-                     "a change between the sessions (a session zero shift) that the "
-                     "alignment made, not the machine. Base reference targets measured with every pose "
-                     "([[targets.base]]) register each row to the base itself")
+        notes.append("[frame] per_file: each file is an instrument station (the recording's station column): its "
+                     "frame is aligned here with the nominal geometry, then `hilcal identify` and `hilcal diagnose` "
+                     "fit every file's frame but the first again, together with the geometry and the effects, so no "
+                     "file's alignment takes up the geometric errors as a session change"
+                     + ("; the target's place per file is the alignment's and is not fitted again"
+                        if mapping.frame.target == "per_file" else ""))
     return out, notes
 
 
@@ -442,6 +443,8 @@ def import_recording(
     if mapping.force is not None:
         forces = np.concatenate([r.force_kn for r in rows])
         extra |= {name: forces[:, k] for k, name in enumerate(FORCE_COLUMNS)}
+    if mapping.frame.align == "per_file" and len(rows) > 1:  # every file a station, fitted with the model
+        extra["station"] = np.concatenate([np.full(r.table.n, float(k)) for k, r in enumerate(rows)])
     file_of_row = np.concatenate([np.full(r.table.n, r.table.name, dtype=object) for r in rows]).astype(str)
     extra["source_file"] = file_of_row
     extra["source_line"] = np.concatenate([np.asarray(r.table.lines, dtype=float) for r in rows])

@@ -221,18 +221,20 @@ def diagnose(
         out.print(f"report: {page} (the digital twin: {report / 'sim_config.toml'})")
 
 
-def _pose_set(rb: Robot, recording: Path | None, design_name: str, seed: int) -> np.ndarray:
+def _pose_set(rb: Robot, recording: Path | None, design_name: str, seed: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The poses to analyse and, from a recording with a station column, their instrument stations."""
     from hilcal.planning import design
     from hilcal.recording import RecordingError, read_recording
 
     if recording is not None:
         try:
-            return read_recording(recording, rb, min_measure_rows=1).select("measure").meas
+            mea = read_recording(recording, rb, min_measure_rows=1).select("measure")
         except RecordingError as e:
             fail(str(e))
+        return mea.meas, mea.stations
     if design_name not in design.PAPER_POSE_SETS:
         fail(f"unknown pose set {design_name!r}: choose one of {', '.join(design.PAPER_POSE_SETS)}")
-    return design.paper_pose_sets(rb, seed, [design_name])[design_name].poses
+    return design.paper_pose_sets(rb, seed, [design_name])[design_name].poses, None
 
 
 def identifiability(
@@ -247,8 +249,9 @@ def identifiability(
     from hilcal.identifiability import identifiability as analyse
 
     rb = robot_or_fail(robot)
-    poses = _pose_set(rb, recording, pose_set, seed)
-    out.print(format_report(analyse(rb, poses, model.value)), highlight=False)
+    poses, stations = _pose_set(rb, recording, pose_set, seed)
+    out.print(format_report(analyse(rb, poses, model.value, stations=stations if model.value == "42" else None)),
+              highlight=False)
 
 
 def design(

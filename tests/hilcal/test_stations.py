@@ -76,3 +76,17 @@ def test_the_station_column_must_hold_station_numbers(tmp_path) -> None:
     path.write_text("\n".join(text) + "\n")
     with pytest.raises(RecordingError, match=r"line 4.*station.*1\.5 is not a station number"):
         read_recording(path, ROBOT)
+
+
+def test_the_rank_report_counts_what_the_stations_take() -> None:
+    """Three interleaved stations of 10-11 poses: their frames take six equations each and leave the geometry's
+    rank; the report says how many stations it counted."""
+    from hilcal.identifiability import format_report, identifiability
+
+    _, seen = with_stations(3, PLANTED)
+    mea = seen.select("measure")
+    alone = identifiability(ROBOT, mea.meas)
+    bundled = identifiability(ROBOT, mea.meas, stations=mea.stations)
+    assert bundled.n_stations == 3 and alone.n_stations == 1
+    assert bundled.rank == alone.rank  # 10-11 poses per station: the frames take their own six each, nothing more
+    assert "3 instrument stations" in format_report(bundled) and "stations" not in format_report(alone)
