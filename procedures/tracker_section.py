@@ -107,6 +107,14 @@ def _layout(v: Any, what: str) -> list[tuple[float, float, float]]:
     return [tuple(p) for p in a.tolist()]
 
 
+class TrackerDriver(EmsconConfig):
+    """``[tracker.driver]``: the driver's timeouts and retries (``drivers.tracker_emscon.EmsconConfig``); the address
+    is the section's own ``host`` and ``port``."""
+
+    host: str = Field(default="", exclude=True)
+    port: int = Field(default=DEFAULT_PORT, exclude=True)
+
+
 class TrackerSection(_Strict):
     """A laser tracker on Leica's emScon (see the module docstring for the TOML)."""
 
@@ -127,7 +135,7 @@ class TrackerSection(_Strict):
         description="SMR nests on the platform (platform frame, reflector centres): at least 3, 4 recommended")
     base_monuments_mm: list[tuple[float, float, float]] = Field(description="fixed nests surveyed in the base frame "
                                                                 "(reflector centres): at least 3")
-    driver: EmsconConfig = Field(default_factory=EmsconConfig, description="timeouts and retries (not host or port)")
+    driver: TrackerDriver = Field(default_factory=TrackerDriver, description="timeouts and retries (not host or port)")
     search: TrackerPoseConfig = Field(default_factory=TrackerPoseConfig)
 
     @field_validator("alignment")
@@ -157,7 +165,7 @@ class TrackerSection(_Strict):
 
     def emscon_config(self) -> EmsconConfig:
         """The driver's settings with this tracker's address."""
-        return self.driver.model_copy(update={"host": self.host, "port": self.port})
+        return EmsconConfig(**self.driver.model_dump(), host=self.host, port=self.port)
 
     def environment_setting(self) -> Environment:
         e = self.environment

@@ -19,6 +19,7 @@ from procedures.runner import SimulatorStartError
 from procedures.signoff import AcceptanceSection
 from procedures.station import BUILT_IN_ROBOT, StationConfig, station_from_channels
 from procedures.timing import TimingSection
+from procedures.tracker_section import TrackerDriver
 from sim_devices.launcher import SimStartError, spawn_sim_subprocess, stop_sim_subprocess
 from sim_devices.sim_config import load_sim_config
 
@@ -46,13 +47,13 @@ TIMEOUT_FLOOR_S = 2.0
 """The simulated tracker's driver timeouts: its durations times its time scale, at least this (a busy computer)."""
 
 
-def sim_tracker_driver(sim_config: str | Path | None) -> EmsconConfig:
+def sim_tracker_driver(sim_config: str | Path | None) -> TrackerDriver:
     """The driver's timeouts for the simulated tracker: a real tracker's defaults times the simulator's time scale
     (its turns, searches and measurements take that much less), at least ``TIMEOUT_FLOOR_S``."""
     scale = load_sim_config(sim_config).tracker.time_scale
     keys = ("command_timeout_s", "initialize_timeout_s", "move_timeout_s", "measure_timeout_s")
     defaults = EmsconConfig()
-    return EmsconConfig(**{k: max(TIMEOUT_FLOOR_S, getattr(defaults, k) * scale) for k in keys})
+    return TrackerDriver(**{k: max(TIMEOUT_FLOOR_S, getattr(defaults, k) * scale) for k in keys})
 
 
 def simulator_robot(sim_config: Path | None) -> tuple[str, Path | None]:
