@@ -80,7 +80,7 @@ def run(
     from procedures.cli.panel import run_with_panel
     from procedures.cli.plan_time import print_adaptive_estimate, print_run_estimate, timing_or_fail
     from procedures.cli.run_summary import print_run_end
-    from procedures.cli.sim_station import SIM_TIMING, sim_station
+    from procedures.cli.sim_station import SIM_TIMING, SIM_TRACKER_TIMING, sim_station
     from procedures.runner import RunRequest, default_records_path, execute_run
 
     if resume is None and not sim and station is None:
@@ -96,7 +96,8 @@ def run(
         adaptive_plan = adaptive_options(target_mm, max_minutes) if adaptive else None
     except AdaptiveError as e:
         fail(str(e))
-    timing = (timing_or_fail(station) if station is not None else SIM_TIMING) if sim else None
+    sim_timing = SIM_TRACKER_TIMING if instrument is InstrumentChoice.tracker else SIM_TIMING
+    timing = (timing_or_fail(station) if station is not None else sim_timing) if sim else None
     if resume is None:  # a resumed run keeps the robot it started with (its journal holds it)
         robot = _one_robot(robot, station, sim, sim_config)
     if operator is None and resume is None and not yes and not panel:

@@ -29,6 +29,10 @@ SIM_TIMING = TimingSection(leg_speed_mm_s=5100.0, leg_accel_mm_s2=1e6, settle_s=
 its devices (timed moves and pose measurements, benchmarks/bench_machine_time.py), never read from the simulator's
 configuration. `hilcal run --sim --station FILE` uses FILE's [timing] instead."""
 
+SIM_TRACKER_TIMING = SIM_TIMING.model_copy(update={"cmm_s_per_pose": 0.03})
+"""The simulated tracker station's: a pose measured in about 0.03 s (docs/benchmarks_tracker.md: about 20 ms of
+protocol and fitting with the tracker instant, and its 16.9 s of machine time times the simulator's 0.0005)."""
+
 SIM_ACCEPTANCE = AcceptanceSection(max_position_mm=0.05, rms_position_mm=0.02, max_orientation_deg=0.005,
                                    rms_orientation_deg=0.002)
 """Example limits of the simulated station, on the verification poses after calibration (the docs' example
