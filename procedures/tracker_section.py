@@ -9,7 +9,7 @@ tracker (``kind = "tracker"``)::
     [tracker]
     host = "192.168.0.1"               # the tracker controller (emScon over TCP)
     port = 700
-    alignment = [5800.0, 2900.0, -1750.0, 0.0, 0.0, -165.0]  # approximate T_tracker<-base, or a 4x4
+    alignment = [6184.0, 104.0, -1800.0, 0.0, 0.0, -165.0]  # approximate T_tracker<-base, or a 4x4
     alignment_tolerance_mm = 10.0      # how far off it may be: the first pose's monuments are searched that far
     alignment_tolerance_deg = 0.2
     identity = "Leica AT960-MR, serial 750123"   # for the certificate

@@ -60,7 +60,10 @@ def _describe(channels: dict[str, Any], handle: SimHandle) -> str:
     if "tracker" in channels:
         tracker = channels["tracker"]
         mpe = f"±({tracker['mpe_constant_um']:g} µm + {tracker['mpe_per_m_um']:g} µm/m)"
+        targets = channels.get("tracker_targets") or {}
         lines += [f"  tracker       {tracker['address']}   (Leica emScon over TCP; MPE {mpe})",
+                  f"  targets       {len(targets.get('platform_targets_mm', []))} platform nests, "
+                  f"{len(targets.get('base_monuments_mm', []))} base monuments (layouts: --json's tracker_targets)",
                   "  tracker alignment T_tracker<-base (approximate, as a station's tracker set-up gives it):",
                   _rows(channels["tracker_alignment"])]
     if channels["state_file"]:
