@@ -161,12 +161,13 @@ def update(belief: MachineBelief, legs_mm: np.ndarray, pose: np.ndarray) -> Mach
 
 
 def refit(belief: MachineBelief, legs_mm: np.ndarray, poses: np.ndarray) -> MachineBelief:
-    """The MAP estimate and covariance on these measured poses (replacing the belief's), from the prior."""
+    """The MAP estimate and covariance on these measured poses (replacing the belief's), started from the belief's
+    estimate and misfit."""
     legs = np.asarray(legs_mm, dtype=float).reshape(-1, N_LEGS)
     poses = np.asarray(poses, dtype=float).reshape(-1, 6)
     sig_p = belief.priors.sigmas()
-    x = np.zeros(N_PARAMS)
-    misfit = belief.priors.misfit_mm
+    x = belief.x.copy()  # the last estimate: a pose more moves it little, so Gauss-Newton starts next to the answer
+    misfit = belief.misfit_mm
     if len(poses) == 0:
         return prior_belief(belief.a, belief.b, belief.l0, belief.priors)
     for _ in range(2):  # the misfit scales the data's weight: estimate, weigh again
