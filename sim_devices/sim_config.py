@@ -43,6 +43,9 @@ Example configuration (every key optional; relative paths are relative to the fi
     base_monuments_mm = [[2500.0, 1443.38, 100.0], [-2500.0, 1443.38, 100.0], [0.0, -2886.75, 100.0]]
                                     # default: four of each around the robot file's spheres (published as the truth)
     hang_after_commands = 400       # a fault: it answers nothing from its 401st command on (default: never)
+    move_every_poses = 20           # set up again near its place after every 20 poses it measured (default 0: never)
+    move_mm = 40.0                  # each move: its origin this far along a seeded direction (default 40)
+    move_deg = 0.5                  # and its frame turned this much about a seeded axis (default 0.5)
     [tracker.air]                   # the true air (the tracker corrects for what the client sets)
     temperature_c = 20.0
     pressure_hpa = 1013.25

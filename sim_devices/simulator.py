@@ -199,8 +199,9 @@ def start_sim(config: SimConfig | None = None, *, lock_timeout_s: float = DEFAUL
         servers = serve_controller(controller)
         view = LockedRigView(rig, controller)
         if cfg.instrument == "tracker":
-            tracker = start_tracker_server(layout_reflectors(*tracker_targets(cfg, robot), view),
-                                           cfg.tracker.server_config(cfg.rig.seed))
+            platform, base = tracker_targets(cfg, robot)
+            tracker = start_tracker_server(layout_reflectors(platform, base, view),
+                                           cfg.tracker.server_config(cfg.rig.seed), platform_reflectors=len(platform))
         else:
             cmm = start_cmm_server(robot, cast(SimulatedRig, view), cfg.cmm.server_config(cfg.rig.seed))
     except BaseException:

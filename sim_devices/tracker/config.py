@@ -3,7 +3,7 @@ obstacles to the line of sight, the TCP endpoint, and the fault kinds with their
 
 Lengths are mm and angles degrees unless a field name says otherwise. The station is the tracker's frame in the base
 frame: p_base = R p_tracker + t, R = Rz(yaw) Ry(pitch) Rx(roll) (a levelled tracker: roll = pitch = 0, its z axis
-up).
+up). ``move_every_poses`` moves it during a session, as an operator sets a tracker up again near its place.
 """
 
 from __future__ import annotations
@@ -104,3 +104,10 @@ class TrackerServerConfig(Strict):
     hang_after_commands: int | None = Field(default=None, ge=0, description="the tracker answers nothing from its "
                                             "command number N + 1 on, over every connection (a tracker that hangs "
                                             "until it is restarted); None: never")
+    move_every_poses: int = Field(default=0, ge=0, description="the operator sets the tracker up again near its "
+                                  "place after every K poses it measured (a pose: a round in which every platform "
+                                  "target was measured); 0: never")
+    move_mm: float = Field(default=40.0, ge=0, description="how far each such move shifts the tracker's origin (a "
+                           "seeded direction)")
+    move_deg: float = Field(default=0.5, ge=0, le=180, description="how far each such move turns the tracker about "
+                            "its origin (a seeded axis)")

@@ -20,6 +20,10 @@ What it answers (every other command of the AT4xx definitions: ``NotImplemented`
   reflector it sees within the search radius (``MeasurementStatusNotReady`` after the search timeout if none).
 * ``StartMeasurement``: with a reflector locked (and still in sight: the tracker follows it as the platform moves),
   answers AllOK and, after the measurement time, sends ``SingleMeasResultT``; else ``MeasurementStatusNotReady``.
+
+With ``move_every_poses`` = K the tracker is set up again near its place (``physics.moved_station``, seeded) the
+moment its K-th, 2K-th, ... pose is measured: a pose is a round in which every platform reflector (the first
+``platform_reflectors``) was measured. Each move is logged (``tracker_sim.moved``, the station before and after).
 """
 
 from __future__ import annotations
@@ -91,12 +95,20 @@ class Step:
 class TrackerMachine:
     """The tracker's state and physics; shared by every connection (its settings are the tracker's, not a link's)."""
 
-    def __init__(self, config: TrackerServerConfig, reflectors: Callable[[], np.ndarray]) -> None:
+    def __init__(self, config: TrackerServerConfig, reflectors: Callable[[], np.ndarray],
+                 platform_reflectors: int = 0) -> None:
         self.config = config
         self.reflectors = reflectors
         """Callable: the reflectors' true centres now, (N, 3) mm in the base frame."""
+        self.platform_reflectors = platform_reflectors
+        """The first this many reflectors sit on the platform: a round measuring each of them is a pose measured."""
         self.lock = threading.Lock()
         self.R, self.t = physics.station_transform(config.station.as_array())
+        self.poses_measured = 0
+        self.moves = 0
+        """How often the tracker was set up again (``move_every_poses``)."""
+        self._round: set[int] = set()
+        self._obstacles_base: list[tuple[np.ndarray, float]] = []
         self.obstacles: list[tuple[np.ndarray, float]] = []
         self.set_obstacles([(np.array(o.centre_mm), o.radius_mm) for o in config.obstacles])
         self.units = [0, 0, 0, 0, 0]
@@ -117,8 +129,40 @@ class TrackerMachine:
     def set_obstacles(self, obstacles_base: list[tuple[np.ndarray, float]]) -> None:
         """Replace the obstacles (centre in the base frame mm, radius mm)."""
         with self.lock:
-            self.obstacles = [(physics.to_tracker(np.asarray(c, dtype=float), self.R, self.t), float(r))
-                              for c, r in obstacles_base]
+            self._obstacles_base = [(np.asarray(c, dtype=float), float(r)) for c, r in obstacles_base]
+            self._place_obstacles()
+
+    def _place_obstacles(self) -> None:
+        self.obstacles = [(physics.to_tracker(c, self.R, self.t), r) for c, r in self._obstacles_base]
+
+    def station_pose(self) -> np.ndarray:
+        """Where the tracker stands now: [x, y, z mm, roll, pitch, yaw deg] of its frame in the base frame."""
+        return physics.station_pose(self.R, self.t)
+
+    def _count_round(self, index: int) -> None:
+        """A platform reflector measured; the round complete (every one of them measured), a pose counted, and after
+        every ``move_every_poses`` poses the tracker set up again (the pose's own measurements are all taken)."""
+        if index >= self.platform_reflectors:
+            return
+        self._round.add(index)
+        if len(self._round) < self.platform_reflectors:
+            return
+        self._round.clear()
+        self.poses_measured += 1
+        every = self.config.move_every_poses
+        if every and self.poses_measured % every == 0:
+            self._move()
+
+    def _move(self) -> None:
+        before = self.station_pose()
+        rng = np.random.default_rng([self.config.seed, 0x30E, self.moves])
+        self.R, self.t = physics.moved_station(self.R, self.t, self.config.move_mm, self.config.move_deg, rng)
+        self._place_obstacles()
+        self.locked = None
+        self.moves += 1
+        log.info("tracker_sim.moved", move=self.moves, after_poses=self.poses_measured,
+                 move_mm=self.config.move_mm, move_deg=self.config.move_deg,
+                 station_before=before.round(4).tolist(), station_after=self.station_pose().round(4).tolist())
 
     # ------------------------------------------------------------------ units
 
@@ -361,6 +405,7 @@ class TrackerMachine:
                                          self.config.air.humidity_pct) / self.indices()[1]
         xyz = physics.measure(q, sigma * self.config.noise_scale, scale, self._rng)
         self.measurements += 1
+        self._count_round(self.locked)
         result = SingleMeasResultT()
         result.measMode = int(MeasMode.Stationary)
         result.dVal1, result.dVal2, result.dVal3 = (self._from_mm(v) for v in xyz)

@@ -24,6 +24,9 @@ Toolbox, Refractive Index of Air Calculator, Appendix B, emtoolbox.nist.gov/Wave
 used alike for the interferometer and the absolute distance meter (the ADM's group index differs from the phase
 index by a few per cent of n − 1, which this simulator leaves out).
 
+**Set up again.** ``moved_station``: the operator moves the tracker near its place, its origin by a distance
+along some direction and its frame by an angle about some axis through its origin.
+
 **Line of sight.** A reflector is seen when its distance lies within the tracker's range and the straight beam from
 the tracker's origin to it passes no obstacle sphere.
 """
@@ -79,6 +82,21 @@ def station_transform(station_pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     p = np.asarray(station_pose, dtype=float)
     R = Rotation.from_euler("ZYX", [p[5], p[4], p[3]], degrees=True).as_matrix()
     return R, p[:3].copy()
+
+
+def station_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """[x, y, z mm, roll, pitch, yaw deg] of a station (R, t), the inverse of ``station_transform``."""
+    yaw, pitch, roll = Rotation.from_matrix(R).as_euler("ZYX", degrees=True)
+    return np.array([*np.asarray(t, dtype=float), roll, pitch, yaw])
+
+
+def moved_station(R: np.ndarray, t: np.ndarray, move_mm: float, move_deg: float, rng: np.random.Generator
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The station (R, t) set up again near its place: its origin shifted by ``move_mm`` along a random direction and
+    its frame turned by ``move_deg`` about a random axis through its origin (both drawn from ``rng``, base frame)."""
+    direction, axis = rng.normal(size=3), rng.normal(size=3)
+    turn = Rotation.from_rotvec(np.radians(move_deg) * axis / np.linalg.norm(axis)).as_matrix()
+    return turn @ R, np.asarray(t, dtype=float) + move_mm * direction / np.linalg.norm(direction)
 
 
 def to_tracker(points_base_mm: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -121,10 +121,14 @@ class TrackerSession:
 class TrackerServerHandle:
     """A running simulated tracker: ``address`` (``host:port``), ``port``, ``faults``, ``machine_time_s``."""
 
-    def __init__(self, config: TrackerServerConfig, reflectors: Callable[[], np.ndarray]) -> None:
+    def __init__(self, config: TrackerServerConfig, reflectors: Callable[[], np.ndarray],
+                 platform_reflectors: int = 0) -> None:
+        if config.move_every_poses and not platform_reflectors:
+            raise ValueError("[tracker] move_every_poses counts the poses by the platform's reflectors: give "
+                             "platform_reflectors (how many of the reflectors sit on the platform)")
         self.config = config
         self.faults = FaultInjector(config.faults, config.seed, config.hang_after_commands)
-        self.machine = TrackerMachine(config, reflectors)
+        self.machine = TrackerMachine(config, reflectors, platform_reflectors)
         self.host = HOST
         self.commands_handled = 0
         self._stop = threading.Event()
@@ -148,6 +152,17 @@ class TrackerServerHandle:
     def machine_time_s(self) -> float:
         """The tracker's machine time so far (s, before ``time_scale``): turning, searching, measuring."""
         return self.machine.machine_time_s
+
+    @property
+    def station(self) -> np.ndarray:
+        """Where the tracker stands now (it moves with ``move_every_poses``): [x, y, z mm, roll, pitch, yaw deg]."""
+        with self.machine.lock:
+            return self.machine.station_pose()
+
+    @property
+    def moves(self) -> int:
+        """How often the tracker was set up again so far."""
+        return self.machine.moves
 
     @property
     def measurements(self) -> int:
@@ -253,7 +268,7 @@ class TrackerServerHandle:
             with contextlib.suppress(OSError):
                 os.close(fd)
         log.info("tracker_sim.stopped", address=self.address, machine_time_s=round(self.machine.machine_time_s, 3),
-                 measurements=self.machine.measurements)
+                 measurements=self.machine.measurements, moves=self.machine.moves)
 
     def __enter__(self) -> TrackerServerHandle:
         return self
@@ -265,13 +280,15 @@ class TrackerServerHandle:
 
 
 def start_tracker_server(reflectors: Callable[[], np.ndarray],
-                         config: TrackerServerConfig | Mapping[str, Any] | None = None) -> TrackerServerHandle:
+                         config: TrackerServerConfig | Mapping[str, Any] | None = None,
+                         platform_reflectors: int = 0) -> TrackerServerHandle:
     """Start the simulated tracker; ``reflectors()`` gives the reflectors' true centres now, (N, 3) mm in the base
-    frame (``sim_devices.tracker.targets.rig_reflectors`` for the rig's spheres). A context manager."""
+    frame (``sim_devices.tracker.targets.rig_reflectors`` for the rig's spheres), the first ``platform_reflectors`` of
+    them on the platform (needed by ``move_every_poses``). A context manager."""
     if config is None:
         cfg = TrackerServerConfig()
     elif isinstance(config, TrackerServerConfig):
         cfg = config
     else:
         cfg = TrackerServerConfig.model_validate(dict(config))
-    return TrackerServerHandle(cfg, reflectors)
+    return TrackerServerHandle(cfg, reflectors, platform_reflectors)
