@@ -5,6 +5,12 @@ The engine asks the instrument to get ready (``prepare``) and to measure the pos
 keeps its own alignment to the base frame: the station's approximate one, known to its tolerance, until a pose has
 registered the base; then each pose's registration (only a prediction: every pose measures the base again). ``link``
 names the instrument's link for the link guard and the report (``"cmm"``, ``"tracker"``).
+
+A laser tracker is set up again during a run (for the line of sight, or knocked): its searches find the monuments
+(``drivers.tracker_pose``), its ``StationLog`` counts the stations (``drivers.tracker_station``), and every row's
+``extra`` says the station and where the tracker stood (``station``, ``station_pose``), with ``station_change`` on the
+first pose of a new station. A monument not found where the previous pose's registration puts it is ``TrackerMoved``:
+the tracker moved farther than the searches reach.
 """
 
 from __future__ import annotations
@@ -19,7 +25,8 @@ import structlog
 from drivers.cmm_base import CmmInterface
 from drivers.cmm_probing import REGISTERED_DEG, REGISTERED_MM
 from drivers.tracker_base import Environment, TrackerDriverError, TrackerInterface
-from drivers.tracker_pose import TrackerPoseConfig, TrackerPoser
+from drivers.tracker_pose import TargetNotFound, TrackerPoseConfig, TrackerPoser
+from drivers.tracker_station import StationLog, station_pose
 from hilcal.robot import Robot
 
 log = structlog.get_logger(__name__)
@@ -27,6 +34,11 @@ log = structlog.get_logger(__name__)
 
 class InstrumentSetupError(TrackerDriverError):
     """The instrument cannot be set up as the station says (a reflector the tracker does not know)."""
+
+
+class TrackerMoved(TargetNotFound):
+    """A base monument not found where the previous pose's registration puts it: the tracker was set up again farther
+    than the widest search reaches (or the monument's reflector is gone or hidden)."""
 
 
 @dataclass(frozen=True)
@@ -58,6 +70,15 @@ class PoseInstrument(abc.ABC):
     @abc.abstractmethod
     def measure_pose(self, robot: Robot, expected_pose: np.ndarray, pose_cov: np.ndarray | None) -> MeasuredPose:
         """Measure the platform where the run's model expects it (its pose and the covariance of [dt mm; dw rad])."""
+
+    def continue_from(self, detail: dict[str, Any]) -> None:
+        """A resumed run: the journal's last row (its detail) says what the instrument had measured from (a tracker's
+        station); nothing for a CMM."""
+        return None
+
+    def expect_move(self) -> None:
+        """The operator set the instrument up again near its place: search its base as for a moved one."""
+        return None
 
 
 class CmmPoseInstrument(PoseInstrument):
@@ -93,7 +114,8 @@ class TrackerPoseInstrument(PoseInstrument):
 
     def __init__(self, tracker: TrackerInterface, address: str, alignment: np.ndarray,
                  tolerance: tuple[float, float], platform_targets_mm: np.ndarray, base_monuments_mm: np.ndarray,
-                 environment: Environment, reflector: str | int, config: TrackerPoseConfig | None = None) -> None:
+                 environment: Environment, reflector: str | int, config: TrackerPoseConfig | None = None,
+                 mpe_um: tuple[float, float] = (15.0, 6.0)) -> None:
         self.tracker = tracker
         self.address = address
         self.alignment = np.asarray(alignment, dtype=float)
@@ -105,6 +127,10 @@ class TrackerPoseInstrument(PoseInstrument):
         self.environment = environment
         self.reflector = reflector
         self.poser = TrackerPoser(tracker, config)
+        self.stations = StationLog(self.base_monuments, *mpe_um)
+        self.registered = False
+        """Whether a pose of this session registered the base (then a monument not found means the tracker moved)."""
+        """The stations so far; ``mpe_um`` (constant µm, µm/m) sets what a move is (``drivers.tracker_station``)."""
 
     def _reflector_id(self) -> int:
         known = self.tracker.reflectors()
@@ -123,9 +149,37 @@ class TrackerPoseInstrument(PoseInstrument):
         log.info("tracker.ready", address=self.address, reflector=self.reflector,
                  environment=vars(self.environment))
 
+    def continue_from(self, detail: dict[str, Any]) -> None:
+        if "station" in detail and "station_pose" in detail:
+            self.stations.resume(detail["station"], np.asarray(detail["station_pose"], dtype=float))
+
+    def expect_move(self) -> None:
+        cfg = self.poser.cfg
+        self.alignment_cov, self.tolerance = None, (cfg.moved_tolerance_mm, cfg.moved_tolerance_deg)
+
     def measure_pose(self, robot: Robot, expected_pose: np.ndarray, pose_cov: np.ndarray | None) -> MeasuredPose:
-        pm = self.poser.measure_pose(self.platform_targets, self.base_monuments, self.alignment, expected_pose,
-                                     pose_cov, alignment_tolerance=self.tolerance, alignment_cov=self.alignment_cov)
-        self.alignment, self.alignment_cov = pm.refined_alignment, pm.refined_cov
+        try:
+            pm = self.poser.measure_pose(self.platform_targets, self.base_monuments, self.alignment, expected_pose,
+                                         pose_cov, alignment_tolerance=self.tolerance, alignment_cov=self.alignment_cov)
+        except TargetNotFound as err:
+            if not self.registered or not err.target.startswith("base monument"):
+                raise
+            raise TrackerMoved(self._moved(err), err.target, err.radius_mm) from err
+        self.alignment, self.alignment_cov, self.registered = pm.refined_alignment, pm.refined_cov, True
+        change = self.stations.observe(pm.refined_alignment)
+        extra = {**pm.extra, "station": self.stations.number,
+                 "station_pose": [round(float(v), 6) for v in station_pose(pm.refined_alignment)]}
+        if change is not None:
+            extra["station_change"] = change.to_json()
+            log.info("tracker.station_change", **change.to_json())
         return MeasuredPose(np.asarray(pm.pose, dtype=float), float(np.max(pm.pose_fit.rms_residual_mm)),
-                            pm.refined_alignment, dict(pm.extra))
+                            pm.refined_alignment, extra)
+
+    def _moved(self, err: TargetNotFound) -> str:
+        where = ", ".join(f"{v:.0f}" for v in station_pose(self.alignment)[:3])
+        return (f"the tracker was moved: {err.target} is not within {err.radius_mm:g} mm (the widest search) of where "
+                f"the last pose's registration (station {self.stations.number}, the tracker at ({where}) mm in the "
+                "base frame) puts it. Set the tracker up again nearer that place, or give its new approximate "
+                "alignment in the station file's [tracker] alignment (T_tracker<-base, within alignment_tolerance_mm), "
+                "then resume the run: it finds the monuments again from there and counts a new station (also check "
+                "that the monument's reflector sits in its nest, in the line of sight)")

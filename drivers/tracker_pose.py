@@ -8,9 +8,12 @@ a target not found within it is searched for again with the radius widened (``wi
 ``max_radius_mm``, and never farther than ``neighbour_fraction`` of the way to the nearest other target's prediction
 (the ATR locks on the nearest reflector it sees): still not found, ``TargetNotFound`` names the target. A measurement
 the beam broke is made again by ``TrackerInterface.measure_point``. Each measured point conditions its body's frame
-with the standard deviation the tracker states, so the next target of that body is predicted better. The base
-monuments registered on their surveyed layout give the refined alignment; the pose comes from both registrations
-(``hilcal.pose_measurement.pose_from_points``).
+with the standard deviation the tracker states, so the next target of that body is predicted better. The monument
+predicted nearest the tracker is measured first (a tracker set up again, turned, moves it least); a monument found
+beyond its bound means the alignment is not what it was (the tracker was set up again near its place): the base is
+predicted again from the alignment known only to ``moved_tolerance_mm`` and ``moved_tolerance_deg``, conditioned on
+the monuments found so far. The base monuments registered on their surveyed layout give the refined alignment; the
+pose comes from both registrations (``hilcal.pose_measurement.pose_from_points``).
 """
 
 from __future__ import annotations
@@ -51,10 +54,21 @@ class TrackerPoseConfig(BaseModel):
                                        "targets on their layout")
     default_bound_mm: float = Field(default=2.0, gt=0, description="the platform's uncertainty when the caller gives "
                                     "no covariance")
+    moved_tolerance_mm: float = Field(default=100.0, gt=0, description="a base monument found beyond its bound: the "
+                                      "tracker was set up again, its alignment known only to this (at the base's "
+                                      "origin) and moved_tolerance_deg, and the monuments are predicted again from it")
+    moved_tolerance_deg: float = Field(default=1.0, gt=0)
 
 
 class TargetNotFound(TrackerDriverError):
     """A target the ATR did not find within the widest search allowed; names the target and where it was sought."""
+
+    def __init__(self, message: str, target: str = "", radius_mm: float = 0.0) -> None:
+        super().__init__(message)
+        self.target = target
+        """The target's name: "base monument 2", "platform target 1"."""
+        self.radius_mm = radius_mm
+        """The widest search made for it."""
 
 
 class TrackerPoseError(TrackerDriverError):
@@ -145,13 +159,22 @@ class TrackerPoser:
                else np.asarray(pose_cov, dtype=float))
         T_bp = transform_from_pose(expected)
         remeasures0 = getattr(self.tracker, "remeasures", 0)
-        base: list[TargetMeasurement] = []
-        for k, s in enumerate(base_layout):
+        found_at: dict[int, TargetMeasurement] = {}
+        for k in _nearest_first(base_belief, base_layout):
+            s = base_layout[k]
             others = [base_belief.point(p) for j, p in enumerate(base_layout) if j != k]
             others += [base_belief.composed(T_bp, cov).point(p) for p in platform_layout]
             found = self._find(f"base monument {k + 1}", base_belief, s, np.array(others))
-            base.append(found)
-            base_belief = base_belief.condition(s, found.point.xyz_mm, _sigma(found.point))
+            found_at[k] = found
+            if found.offset_mm > found.bound_mm:  # not where the alignment put it: the tracker was set up again
+                log.info("tracker.alignment_reset", target=found.name, offset_mm=found.offset_mm,
+                         bound_mm=found.bound_mm)
+                base_belief = BodyBelief.within(T0, cfg.moved_tolerance_mm, cfg.moved_tolerance_deg)
+                for j, t in found_at.items():
+                    base_belief = base_belief.condition(base_layout[j], t.point.xyz_mm, _sigma(t.point))
+            else:
+                base_belief = base_belief.condition(s, found.point.xyz_mm, _sigma(found.point))
+        base = [found_at[k] for k in range(len(base_layout))]
         base_pts = np.array([t.point.xyz_mm for t in base])
         R_tb, t_tb, rms_b = rigid_fit(base_layout, base_pts)
         if rms_b > cfg.registration_tol_mm:
@@ -210,11 +233,19 @@ class TrackerPoser:
                     raise TargetNotFound(
                         f"{name}: no reflector within {radius:.1f} mm of its prediction ({where}) mm in the tracker's "
                         f"frame after {searches} ATR search(es), {why}: check that its reflector sits in its nest, "
-                        "in the tracker's line of sight, and the station's alignment and target layout") from err
+                        "in the tracker's line of sight, and the station's alignment and target layout",
+                        name, radius) from err
                 log.info("tracker.search_widened", target=name, radius_mm=radius, bound_mm=pred.bound_mm)
                 radius = min(radius * cfg.widen_factor, limit)
                 continue
             return TargetMeasurement(name, pred.centre_mm, pred.bound_mm, point, radius, searches)
+
+
+def _nearest_first(belief: BodyBelief, layout: np.ndarray) -> list[int]:
+    """The order the monuments are measured in: the one predicted nearest the tracker first (a tracker set up again
+    turned by an angle moves it least), then the others in the layout's order."""
+    nearest = int(np.argmin([np.linalg.norm(belief.point(p)) for p in layout]))
+    return [nearest, *(k for k in range(len(layout)) if k != nearest)]
 
 
 def _sigma(point: TrackerPoint) -> float:

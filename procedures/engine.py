@@ -6,6 +6,12 @@ or a laser tracker, each keeping its own alignment to the base) and the robot. S
 through (`procedures.link_guard.LinkGuard`); a fault, a link that stays down or an operator abort stops motion, keeps
 the journal and raises `RunInterrupted` with the way to resume. An optional observer (the operator panel) is told of
 every message, result, pause and stop.
+
+A laser tracker set up again during the run starts a new station (``drivers.tracker_station``): its rows say their
+``station`` and the first row of each new one its ``station_change``, journaled too as a ``station_change`` event; a
+resumed run continues the count from the journal's last row. A tracker moved farther than its searches reach
+(``TrackerMoved``) stops an unattended run; an attended one asks the operator to set it up near its place and
+measures the pose again.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ import numpy as np
 import structlog
 
 from drivers.controller_modbus import CompensationBlock, ParameterSet
+from drivers.instrument import MeasuredPose, TrackerMoved
 from hilcal.protocols.controller_states import MOTION_STATES, ControllerState
 from hilcal.protocols.registers import Capability
 from procedures import messages as m
@@ -188,6 +195,9 @@ class Engine:
     def _on_preparecmm(self, msg: m.PrepareCmm) -> None:
         instrument = self.devices.instrument
         instrument.prepare()
+        last = self.journal.last_measurement()
+        if last is not None:  # a resumed run: the tracker's station count goes on
+            instrument.continue_from(last["detail"])
         self.journal.event(f"{instrument.link}_ready")
 
     def _on_enable(self, msg: m.Enable) -> None:
@@ -223,16 +233,33 @@ class Engine:
         legs = np.asarray(self.devices.controller.feedback().lengths_mm, dtype=float)
         expected = np.array(msg.cmd_pose if msg.expected_pose is None else msg.expected_pose)
         cov = None if msg.pose_cov is None else np.reshape(msg.pose_cov, (6, 6))
-        pm = self.devices.instrument.measure_pose(self.devices.robot, expected, cov)
+        pm = self._measure_pose(msg, expected, cov)
         detail = {"sphere_fit_rms_mm": pm.registration_rms_mm, **pm.extra}
         if temperature_c is not None:
             detail["temp_c"] = temperature_c
         row = self.journal.add_measurement(msg.phase, msg.index, time.monotonic() - self.t0, np.array(msg.cmd_pose),
                                            legs, np.asarray(pm.pose, dtype=float), detail)
         log.info("measured", phase=msg.phase, index=msg.index)
+        if "station_change" in detail:
+            self.journal.event("station_change", phase=msg.phase, index=msg.index, **detail["station_change"])
         if self.on_measure is not None:
             self.on_measure(row)
         return row
+
+    def _measure_pose(self, msg: m.Measure, expected: np.ndarray, cov: np.ndarray | None) -> MeasuredPose:
+        """The instrument's pose; a tracker moved beyond its searches stops an unattended run, and at an attended one
+        the operator sets it up near its place and the pose is measured again (or declines: the run stops)."""
+        instrument = self.devices.instrument
+        while True:
+            try:
+                return instrument.measure_pose(self.devices.robot, expected, cov)
+            except TrackerMoved as moved:
+                self.journal.event("tracker_moved", phase=msg.phase, index=msg.index, reason=str(moved))
+                if self.confirm is None:
+                    raise
+                self._on_prompt(m.Prompt("tracker_moved", f"{moved}. Set the tracker up again near that place now "
+                                         "(its monuments are searched for again): measure the pose again?"))
+                instrument.expect_move()
 
     def _on_recall(self, msg: m.Recall) -> list[dict]:
         return self.journal.measurements(msg.phases)

@@ -91,6 +91,12 @@ class Journal:
                                "FROM measurements WHERE phase = ? AND pose_index = ?", (phase, index)).fetchone()
         return None if row is None else _row(row)
 
+    def last_measurement(self) -> dict[str, Any] | None:
+        """The row measured last, of any phase (None before the first)."""
+        row = self._db.execute("SELECT seq, phase, pose_index, time_s, cmd_json, legs_json, meas_json, detail_json "
+                               "FROM measurements ORDER BY seq DESC LIMIT 1").fetchone()
+        return None if row is None else _row(row)
+
     def measurements(self, phases: tuple[str, ...]) -> list[dict[str, Any]]:
         marks = ",".join("?" * len(phases))
         rows = self._db.execute(f"SELECT seq, phase, pose_index, time_s, cmd_json, legs_json, meas_json, detail_json "

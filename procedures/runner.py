@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import structlog
 
+from drivers.tracker_station import stations_summary
 from hilcal.metrics import AccuracySummary, pose_errors
 from hilcal.planning.machine_time import TimeEstimate
 from hilcal.recording import write_recording
@@ -244,6 +245,7 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
         upload=result.upload,
         machine_time=machine_time,
         links=links_summary(journal),
+        stations=stations_summary(journal.measurements((*PRE_PHASES, AFTER_PHASE, ACCEPTANCE_PHASE))),
         drift=drift,
         signoff=signoff,
         adaptive=result.adaptive if isinstance(result.adaptive, dict) and "summary" in result.adaptive else None,

@@ -389,7 +389,7 @@ def open_devices(station: StationConfig, *, check: bool = True) -> Devices:
                 instrument: PoseInstrument = TrackerPoseInstrument(
                     tracker, station.instrument_address(), t.alignment_matrix(),
                     (t.alignment_tolerance_mm, t.alignment_tolerance_deg), platform, base, t.environment_setting(),
-                    t.reflector, t.search)
+                    t.reflector, t.search, (t.mpe_constant_um, t.mpe_per_m_um))
             else:
                 cmm = SerialCmm(station.cmm.url, station.cmm.serial, station.cmm.probing)
                 stack.callback(cmm.close)

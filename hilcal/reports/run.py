@@ -80,6 +80,8 @@ class RunReport:
     uncertainty, iso9283, certificate): ``procedures.certificate.signoff_section``."""
     adaptive: dict | None = None
     """``hilcal.reports.adaptive.adaptive_section``: an adaptive run's stop reason, prediction and verification."""
+    stations: dict | None = None
+    """``drivers.tracker_station.stations_summary``: a laser tracker's stations and where it was set up again."""
 
     def __post_init__(self) -> None:
         if self.identifications and self.chosen not in self.identifications:
@@ -213,6 +215,7 @@ def report_json(r: RunReport) -> dict[str, Any]:
         "warnings": list(r.warnings),
         "machine_time": r.machine_time,
         "links": r.links,
+        "stations": r.stations,
         "drift": r.drift,
         "adaptive": r.adaptive,
         **(r.signoff or {}),
@@ -460,6 +463,20 @@ def links_lines(links: dict | None) -> list[str]:
             f"(longest {v['longest_hold_s']:.2f} s){', LOST' if v['lost'] else ''}" for name, v in links.items()]
 
 
+def stations_lines(stations: dict | None) -> list[str]:
+    """How many stations the instrument measured from and after which poses it was set up again (none: no lines)."""
+    if not stations:
+        return []
+    moves = stations.get("moves") or []
+    after = ", ".join(str(mv.get("after_pose")) for mv in moves)
+    count = stations.get("count")
+    return [f"{count} station{'' if count == 1 else 's'}" + (f": set up again after {after}" if moves else
+                                                               ": never moved"),
+            *(f"station {mv.get('station')} from {mv.get('first_pose')}: moved {mv.get('moved_mm', 0):.1f} mm, "
+              f"turned {mv.get('turned_deg', 0):.3f}° (its monuments {mv.get('monument_shift_mm', 0):.1f} mm off in "
+              f"its view; a new station beyond {mv.get('threshold_mm', 0):.2f} mm)" for mv in moves)]
+
+
 def _links_html(links: dict | None) -> str:
     return "<ul>" + "".join(f"<li>{_esc(line)}</li>" for line in links_lines(links)) + "</ul>"
 
@@ -496,6 +513,8 @@ def report_html(r: RunReport) -> str:
 <h2>Verification errors before and after calibration (cf. paper Table 7)</h2>{_table7_html(r)}
 <h2>Machine time: estimated against actual</h2>{time_html(r.machine_time)}
 <h2>Links: holds and retries</h2>{_links_html(r.links)}
+{'' if not r.stations else '<h2>Instrument stations</h2><ul>' + ''.join(
+    f'<li>{_esc(line)}</li>' for line in stations_lines(r.stations)) + f'</ul><p>{_esc(r.stations["frames"])}</p>'}
 <h2>Absolute position error at the verification poses (cf. paper Fig. 13)</h2>
 {img(_per_pose_plot(r, 0, "position", "mm"), "position error per verification pose")}
 <h2>Absolute orientation error at the verification poses (cf. paper Fig. 14)</h2>

@@ -1,6 +1,6 @@
 """How `hilcal run` ends: the links' statistics, then a short summary of report.json (the verification poses before
-and after with their uncertainty, an adaptive run's stop reason, what was uploaded, the verdict, where the report and
-certificate are).
+and after with their uncertainty, an adaptive run's stop reason, what was uploaded, a laser tracker's stations, the
+verdict, where the report and certificate are).
 
 The same end for a plain run, a `--panel` run and a resumed one. report.json is read defensively: a key a run did
 not reach (a refused upload, no sign-off) or one a later version adds is shown as such, never as a made-up number.
@@ -124,6 +124,8 @@ def verdict_text(report: Mapping[str, Any]) -> Text:
 
 def run_summary(report: Mapping[str, Any], report_path: Path, certificate_path: Path | None = None) -> Group:
     """The summary of one run's report.json, as a rich renderable (no markup is parsed: paths may hold brackets)."""
+    from hilcal.reports.run import stations_lines  # here, not at start-up: plotting loads after the machine moved
+
     status = report.get("status") or "status not recorded"
     facts = Table.grid(padding=(0, 2))
     facts.add_column(style="bold")
@@ -133,6 +135,8 @@ def run_summary(report: Mapping[str, Any], report_path: Path, certificate_path: 
         facts.add_row("adaptive", Text(str(adaptive["summary"])))
     for n, line in enumerate(uploaded_lines(report)):
         facts.add_row("uploaded" if n == 0 else "", Text(line))
+    for line in stations_lines(report.get("stations") if isinstance(report.get("stations"), Mapping) else None)[:1]:
+        facts.add_row("instrument", Text(line))
     for n, line in enumerate(report.get("warnings") or []):
         facts.add_row("warning" if n == 0 else "", Text(str(line)))
     facts.add_row("verdict", verdict_text(report))

@@ -1,6 +1,8 @@
 """The laser tracker's pose strategy (``drivers.tracker_pose``) against the simulated tracker over TCP: the pose and the
 refined alignment from the monuments and nests, the ATR search radius from the prediction's bound, a search widened
-after a miss, a target out of sight named, a broken beam measured again, a wrong layout refused.
+after a miss, a target out of sight named, a broken beam measured again, a wrong layout refused; a tracker set up again
+near its place found and counted as a new station (``drivers.tracker_station``), a still one staying one, one moved
+beyond the searches stopping with what to do.
 
 The truth is written here: a station placed by this test, four nests on a platform at a pose of this test, four
 monuments on the floor; T_tracker<-base from the station's definition p_base = R p_tracker + t, R = Rz Ry Rx.
@@ -14,8 +16,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from drivers.instrument import TrackerMoved, TrackerPoseInstrument
+from drivers.tracker_base import Environment
 from drivers.tracker_emscon import EmsconConfig, EmsconTracker
 from drivers.tracker_pose import TargetNotFound, TrackerPoseConfig, TrackerPoseError, TrackerPoser
+from drivers.tracker_station import StationLog
 from sim_devices.tracker.config import Station, TrackerServerConfig
 from sim_devices.tracker.server import TrackerServerHandle, start_tracker_server
 
@@ -136,3 +141,85 @@ def test_a_layout_that_is_not_the_platforms_is_refused(tracker) -> None:
     wrong[2, 1] += 1.0  # the station file puts nest 3 a millimetre from where it is
     with pytest.raises(TrackerPoseError, match="platform targets do not match their layout"):
         measure(tracker, true_alignment(), (2.0, 0.02), nests=wrong)
+
+
+def serve_moving(**config: float) -> TrackerServerHandle:
+    """The station of this file, with noise, set up again after every pose it measured (``move_every_poses = 1``)."""
+    station = Station(**dict(zip(("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"), STATION, strict=True)))
+    settings = {"seed": 8, "time_scale": 0.0, "station": station, "move_every_poses": 1, **config}
+    return start_tracker_server(reflectors, TrackerServerConfig(**settings), platform_reflectors=4)
+
+
+def alignment_of_station(pose: np.ndarray) -> np.ndarray:
+    R = rotation(pose[3:])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R.T, -R.T @ pose[:3]
+    return T
+
+
+def test_a_tracker_set_up_again_near_its_place_is_found_and_counted() -> None:
+    """After every pose the tracker moves 40 mm and turns 0.5 deg (its monuments 4.8-9.2 m away: up to 120 mm in its
+    view). Each next pose starts from the previous registration, known to about 0.02 mm: the nearest monument is found
+    on a widened search, the others from the alignment known again to 100 mm and 1 deg; every pose is the truth to
+    the tracker's noise and every registration is a new station, by the move the simulator made."""
+    cov = np.diag([0.5**2] * 3 + [np.radians(0.02) ** 2] * 3)
+    with serve_moving() as sim, EmsconTracker(EmsconConfig(port=sim.port, **FAST)) as tracker:
+        tracker.initialize()
+        tracker.setup()
+        poser = TrackerPoser(tracker)
+        stations = StationLog(MONUMENTS, 15.0, 6.0)
+        result = poser.measure_pose(NESTS, MONUMENTS, true_alignment(), POSE, cov, alignment_tolerance=(2.0, 0.02))
+        assert stations.observe(result.refined_alignment) is None and stations.number == 1
+        for n in range(2, 6):
+            before = sim.station  # where the tracker stands now (it moved after the pose above)
+            result = poser.measure_pose(NESTS, MONUMENTS, result.refined_alignment, POSE, cov,
+                                        alignment_cov=result.refined_cov)
+            np.testing.assert_allclose(result.pose[:3], POSE[:3], atol=0.2)
+            np.testing.assert_allclose(result.refined_alignment[:3, 3], alignment_of_station(before)[:3, 3], atol=0.3)
+            assert result.base[0].searches > 1 and all(t.searches == 1 for t in (*result.base[1:], *result.platform))
+            change = stations.observe(result.refined_alignment)
+            assert change is not None and change.station == stations.number == n
+            assert change.moved_mm == pytest.approx(40.0, abs=0.3)
+            assert change.turned_deg == pytest.approx(0.5, abs=0.005)
+
+
+def test_a_still_tracker_stays_one_station() -> None:
+    """40 poses from one station: the registrations scatter by the tracker's noise, far below the threshold of ten
+    MPEs at the farthest monument (U = 15 µm + 6 µm/m at its 9.2 m: 70 µm, threshold 0.70 mm)."""
+    cov = np.diag([0.5**2] * 3 + [np.radians(0.02) ** 2] * 3)
+    with serve_moving(move_every_poses=0) as sim, EmsconTracker(EmsconConfig(port=sim.port, **FAST)) as tracker:
+        tracker.initialize()
+        tracker.setup()
+        poser = TrackerPoser(tracker)
+        stations = StationLog(MONUMENTS, 15.0, 6.0)
+        result = poser.measure_pose(NESTS, MONUMENTS, true_alignment(), POSE, cov, alignment_tolerance=(2.0, 0.02))
+        shifts = []
+        for _ in range(40):
+            previous = stations.last
+            stations.observe(result.refined_alignment)
+            if previous is not None:
+                d = result.refined_alignment - previous
+                shifts.append(np.max(np.linalg.norm(MONUMENTS @ d[:3, :3].T + d[:3, 3], axis=1)))
+            result = poser.measure_pose(NESTS, MONUMENTS, result.refined_alignment, POSE, cov,
+                                        alignment_cov=result.refined_cov)
+    far = np.max(np.linalg.norm(MONUMENTS @ true_alignment()[:3, :3].T + true_alignment()[:3, 3], axis=1))
+    threshold = 10 * (15.0 + 6.0 * far / 1000.0) / 1000.0
+    assert stations.number == 1 and stations.threshold_mm(true_alignment()) == pytest.approx(threshold, rel=1e-3)
+    assert 0.01 < np.mean(shifts) and max(shifts) < threshold / 3
+
+
+def test_a_tracker_moved_beyond_the_searches_stops_with_what_to_do() -> None:
+    """Moved 400 mm after the first pose: no monument within the widest search of where the first pose registered
+    it; the instrument says the tracker was moved and how to go on."""
+    with serve_moving(move_mm=400.0) as sim, EmsconTracker(EmsconConfig(port=sim.port, **FAST)) as tracker:
+        instrument = TrackerPoseInstrument(tracker, sim.address, true_alignment(), (2.0, 0.02), NESTS, MONUMENTS,
+                                           Environment(20.0, 1013.25, 50.0), "RRR 1.5in")
+        instrument.prepare()
+        first = instrument.measure_pose(None, POSE, None)
+        assert first.extra["station"] == 1 and "station_change" not in first.extra
+        with pytest.raises(TrackerMoved) as moved:
+            instrument.measure_pose(None, POSE, None)
+    said = str(moved.value)
+    assert said.startswith("the tracker was moved: base monument 1 is not within 100 mm")
+    assert "station 1" in said and "Set the tracker up again nearer that place" in said
+    assert "[tracker] alignment" in said and "resume" in said

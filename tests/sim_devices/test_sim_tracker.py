@@ -169,3 +169,38 @@ def test_hilcal_sim_serves_the_tracker_instead_of_the_cmm(tmp_path: Path) -> Non
         assert handle.cmm_server is None and handle.tracker_server is not None
         text = _describe(handle.channels(), handle)
     assert f"tracker       127.0.0.1:{handle.tracker_server.port}" in text and "CMM" not in text
+
+
+def test_the_tracker_is_set_up_again_after_every_k_poses() -> None:
+    """Two reflectors on the "platform", one on the floor: a pose is a round measuring both platform ones (the floor's
+    never counts); after every second round the station moves by 40 mm and turns by 0.5 deg, and the tracker then
+    reports the floor's reflector where the new station sees it (p_base = R p_tracker + t)."""
+    points = ROBOT.base_spheres.copy()
+    config = TrackerServerConfig(seed=5, time_scale=0.0, station=station(), noise_scale=0.0, move_every_poses=2)
+    with start_tracker_server(lambda: points, config, platform_reflectors=2) as server, \
+            EmsconTracker(EmsconConfig(port=server.port, **FAST)) as tracker:
+        tracker.initialize()
+        tracker.setup()
+
+        def seen_from(pose: np.ndarray) -> np.ndarray:
+            R = Rotation.from_euler("ZYX", pose[[5, 4, 3]], degrees=True).as_matrix()
+            return (points - pose[:3]) @ R
+
+        def measure(k: int) -> np.ndarray:
+            tracker.set_search_params(100.0, 1.0)
+            return tracker.measure_point(seen_from(server.station)[k]).xyz_mm
+
+        first = server.station
+        np.testing.assert_allclose(first, STATION, atol=1e-9)
+        for k in (2, 2, 0, 2, 1, 0):  # the floor's thrice, then round 1 (0, 1); round 2 starts with 0
+            measure(k)
+        assert server.moves == 0
+        measure(1)  # round 2 complete: the tracker is set up again
+        assert server.moves == 1
+        moved = server.station
+        assert np.linalg.norm(moved[:3] - first[:3]) == pytest.approx(40.0, abs=1e-9)
+        turn = (Rotation.from_euler("ZYX", moved[[5, 4, 3]], degrees=True)
+                * Rotation.from_euler("ZYX", first[[5, 4, 3]], degrees=True).inv())
+        assert np.degrees(turn.magnitude()) == pytest.approx(0.5, abs=1e-9)
+        np.testing.assert_allclose(measure(2), seen_from(moved)[2], atol=1e-6)
+        assert np.linalg.norm(seen_from(moved)[2] - seen_from(first)[2]) > 10.0
