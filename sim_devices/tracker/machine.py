@@ -139,6 +139,14 @@ class TrackerMachine:
         """Where the tracker stands now: [x, y, z mm, roll, pitch, yaw deg] of its frame in the base frame."""
         return physics.station_pose(self.R, self.t)
 
+    def place(self, station_pose: np.ndarray) -> None:
+        """Set the tracker up at a station [x, y, z mm, roll, pitch, yaw deg] (an operator carrying it; the lock is
+        lost). Under the machine's lock."""
+        self.R, self.t = physics.station_transform(np.asarray(station_pose, dtype=float))
+        self._place_obstacles()
+        self.locked = None
+        log.info("tracker_sim.placed", station=self.station_pose().round(4).tolist())
+
     def _count_round(self, index: int) -> None:
         """A platform reflector measured; the round complete (every one of them measured), a pose counted, and after
         every ``move_every_poses`` poses the tracker set up again (the pose's own measurements are all taken)."""

@@ -159,6 +159,11 @@ class TrackerServerHandle:
         with self.machine.lock:
             return self.machine.station_pose()
 
+    def set_station(self, station_pose: np.ndarray) -> None:
+        """Set the tracker up at another station [x, y, z mm, roll, pitch, yaw deg] (an operator carrying it)."""
+        with self.machine.lock:
+            self.machine.place(station_pose)
+
     @property
     def moves(self) -> int:
         """How often the tracker was set up again so far."""
