@@ -6,8 +6,9 @@ what its diagnosis predicted (within 1.5x), its diagnosis names no session shift
 counts the stations where the simulator moved the tracker (83 rows: 5 stations) by the moves the simulator logged; a
 move beyond the searches (400 mm) stops the run saying the tracker was moved and how to go on, and the resume with the
 tracker set up at a new place 30 mm off (the simulated station then publishes that place's approximate alignment, as
-an operator gives it in the station file) completes the run, the station count continuing; at an attended station
-the operator sets the tracker up again when asked and the pose is measured again.
+an operator gives it in the station file) completes the run, the station count continuing; free station frames fitted
+to its recording find nothing to correct (why the run writes no station column); at an attended station the operator
+sets the tracker up again when asked and the pose is measured again.
 """
 
 from __future__ import annotations
@@ -22,6 +23,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from hilcal.calibration import calibrate
+from hilcal.recording import read_recording
+from hilcal.robot import default_robot
 from procedures import messages as m
 from procedures.engine import Engine
 from procedures.journal import Journal
@@ -146,6 +150,26 @@ def test_a_move_beyond_the_searches_stops_the_run_and_the_resume_completes_it(ru
     assert changes[0]["moved_mm"] == pytest.approx(30.0, abs=0.3) and changes[0]["turned_deg"] < 0.005
     report = json.loads((run / "report.json").read_text())
     assert report["stations"]["count"] == 5 and report["stations"]["moves"][0]["after_pose"] == "measure pose 20"
+
+
+def test_free_station_frames_in_the_fit_would_find_nothing_to_correct(runs, tmp_path: Path) -> None:
+    """Why the run writes no station column: its rows are registered on the monuments, so a free frame per station
+    (hilcal/stations.py) fitted with the geometry comes out at the registrations' noise, and only widens the
+    parameters' standard errors."""
+    code, stdout, run = runs["moved"]
+    assert code == 0, stdout
+    lines = (run / "recording.csv").read_text().splitlines()
+    station = dict(enumerate((d["station"] - 1 for d in _details(run)), start=1))  # by the journal's seq
+    seq = lines[0].split(",").index("seq")
+    (tmp_path / "stations.csv").write_text("\n".join([lines[0] + ",station", *(
+        f"{line},{station[int(line.split(',')[seq])]}" for line in lines[1:])]))
+    robot = default_robot()
+    registered = calibrate(read_recording(run / "recording.csv", robot), robot).identification
+    framed = calibrate(read_recording(tmp_path / "stations.csv", robot), robot).identification
+    assert framed.station_frames is not None and set(framed.station_frames) == {1}  # the measure rows' stations 1, 2
+    frame = framed.station_frames[1]
+    assert np.linalg.norm(frame[:3]) < 0.05 and np.degrees(np.linalg.norm(frame[3:])) < 0.005
+    assert np.all(framed.std_errors >= registered.std_errors * (1 - 1e-9))
 
 
 @pytest.fixture
