@@ -29,8 +29,9 @@ def _two_sessions(effects: dict, seed: int):
     """Measure rows 0-17 in session 1, 18-31 and the verify rows in session 2 (the instrument set up again)."""
     cfg = RigConfig(seed=seed, errors=load_errors("table2"), cmm_noise_mm=0.002,
                     effects=EffectsConfig.model_validate(effects))
+    options = RecordingOptions(session_gap_s=86_400.0, measure_session_starts=(18,), include_temp=False)
     rec = simulate_recording(ROBOT, cfg, default_design(32, seed), design.verification_poses(ROBOT, 16, seed),
-                             options=RecordingOptions(session_gap_s=86_400.0, measure_session_starts=(18,), include_temp=False))
+                             options=options)
     station = np.zeros(rec.n)
     station[18:] = 1.0
     meas = rec.meas.copy()
