@@ -1,4 +1,9 @@
-"""Calibrate from a recording: identify on the `measure` rows, judge accuracy on the `verify` rows."""
+"""Calibrate from a recording: identify on the `measure` rows, judge accuracy on the `verify` rows.
+
+The least-squares covariance carries the recording's measured noise and, when the residual exceeds it, the model's
+misfit (``hilcal.misfit``): the noise is the robot file's `cmm.sphere_sigma_mm`, else the one the recording's
+`sphere_fit_rms_mm` column shows, carried through the registration to every measured pose (``recording_noise``).
+"""
 
 from __future__ import annotations
 
@@ -9,7 +14,8 @@ import numpy as np
 
 from hilcal.identification import IdentificationResult, identify, predict_poses
 from hilcal.metrics import AccuracySummary
-from hilcal.recording import Recording
+from hilcal.pose_measurement import sigma_from_sphere_fit, sphere_noise_covariance
+from hilcal.recording import Recording, session_numbers
 from hilcal.robot import Robot
 from hilcal.stations import remove_frames
 
@@ -44,6 +50,8 @@ class CalibrationOutcome:
         if ident.std_errors is not None:
             out["std_errors"] = {n: float(s) for n, s in zip(ident.names, ident.std_errors, strict=True)}
             out["sigma_mm"] = ident.sigma
+        out["model_incomplete"] = None if ident.misfit is None else ident.misfit.incomplete
+        out["misfit"] = None if ident.misfit is None else ident.misfit.to_json()
         return out
 
 
@@ -64,12 +72,31 @@ def verification_accuracy(
     return before, after
 
 
+def recording_noise(rec: Recording, robot: Robot) -> tuple[np.ndarray, float | None] | None:
+    """The measured pose noise of every row [N, 6, 6] (residual metric) and its degrees of freedom (None: stated):
+    from the robot file's sphere sigma, else the recording's sphere_fit_rms_mm column; None without either."""
+    sigma, dof = robot.sphere_sigma_mm, None
+    column = rec.extra.get("sphere_fit_rms_mm")
+    if sigma is None and column is not None and column.dtype.kind == "f" and np.isfinite(column).sum() >= 3:
+        sigma, dof = sigma_from_sphere_fit(column, robot)
+    if sigma is None or not sigma > 0:
+        return None
+    return sphere_noise_covariance(robot, rec.meas, sigma, robot.characteristic_length_mm), dof
+
+
 def calibrate(rec: Recording, robot: Robot, **identify_options: Any) -> CalibrationOutcome:
-    """Identify on the measure rows (options as for `identify`) and evaluate on the verify rows."""
+    """Identify on the measure rows (options as for `identify`) and evaluate on the verify rows; a least-squares fit
+    of the 42-parameter model gets the recording's noise (``recording_noise``) unless the options give one."""
     mea = rec.select("measure")
     if mea.stations is not None and "stations" not in identify_options and identify_options.get("estimator",
                                                                                                  "ls") == "ls":
         identify_options = {**identify_options, "stations": mea.stations}
+    if identify_options.get("estimator", "ls") == "ls" and "noise_covariance" not in identify_options:
+        noise = recording_noise(rec, robot)
+        if noise is not None:
+            measure = rec.phase == "measure"
+            identify_options = {**identify_options, "noise_covariance": noise[0][measure], "noise_dof": noise[1],
+                                "sessions": session_numbers(rec.time_s)[measure]}
     ident = identify(robot, mea.legs_mm, mea.meas, **identify_options)
     before, after = verification_accuracy(rec, robot, ident)
     return CalibrationOutcome(ident, mea.n, rec.n - mea.n, before, after)

@@ -29,6 +29,7 @@ from hilcal.error_models import (
     pose_difference,
 )
 from hilcal.kinematics import Geometry, forward_kinematics, split_pose
+from hilcal.misfit import Misfit, honest_covariance
 from hilcal.robot import Robot
 from hilcal.stations import StationFrames
 
@@ -67,6 +68,9 @@ class IdentificationResult:
     station_frames: dict[int, np.ndarray] | None = None
     """Each fitted instrument station's rigid error [dt (mm); dw (rad)] about the workspace centre (None: one
     station, or none given); the first station's is zero by definition (``hilcal.stations``)."""
+    misfit: Misfit | None = None
+    """With the recording's noise (``identify(noise_covariance=...)``): whether the model is incomplete and what its
+    misfit adds to the covariance (``hilcal.misfit``); None: the covariance is sigma^2 (J^T J)^+."""
 
     def parameters(self) -> dict[str, float]:
         return {n: float(v) for n, v in zip(self.names, self.x, strict=True)}
@@ -272,6 +276,9 @@ def identify(
     extra_names: tuple[str, ...] = (),
     x0: np.ndarray | None = None,
     stations: np.ndarray | None = None,
+    noise_covariance: np.ndarray | None = None,
+    noise_dof: float | None = None,
+    sessions: np.ndarray | None = None,
 ) -> IdentificationResult:
     """Identify geometric errors from reported leg lengths and measured poses (mm, deg).
 
@@ -281,7 +288,10 @@ def identify(
     rigid model: geometric length = reported + dl0 + phi @ theta. `x0` starts the iterated least squares there
     (e.g. a previous fit) instead of at the nominal geometry. `stations` (N,) labels each pose's instrument station:
     every station but the first gets its rigid frame error fitted with the rest (``hilcal.stations``; least squares,
-    forward formulation).
+    forward formulation). `noise_covariance` (N, 6, 6): the measured pose noise of every row (residual metric, with
+    `noise_dof` its degrees of freedom, None when stated; `sessions` (N,) the rows' sessions): the least-squares
+    covariance is then the noise's and, when the residual exceeds it, the model's misfit's (``hilcal.misfit``; forward
+    42-parameter model).
     """
     if model not in MODELS:
         raise IdentificationError(f"unknown model {model!r}: use one of {sorted(MODELS)}")
@@ -318,6 +328,15 @@ def identify(
         x, nit, converged, message = _identify_linf(fun, len(names), method, max_iter, tol)
     r, J = fun(x)
     sigma, std, cov, rank = _ls_statistics(r, J, 0 if frames is None else frames.n_params)
+    misfit = None
+    if noise_covariance is not None and estimator == "ls" and model == GEOMETRIC_42.key and formulation == "forward" \
+            and cov is not None:
+        raw = J if frames is None else residual_function(robot, L, q, formulation, lc, extra_regressors)(x)[1]
+        honest, misfit = honest_covariance(
+            J, r, noise_covariance, raw.reshape(len(L), 6, -1)[:, :, [7 * i + 6 for i in range(6)]], L, sessions,
+            frames=None if frames is None else StationFrames.of(stations, q, lc, robot.home[:3]), noise_dof=noise_dof)
+        std = np.where(np.isnan(std), np.nan, np.sqrt(np.clip(np.diag(honest), 0.0, None)))
+        cov = honest
     station_frames = None
     if frames is not None:
         raw = residual_function(robot, L, q, formulation, lc, extra_regressors)(x)[0]
@@ -329,7 +348,7 @@ def identify(
         residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))),
         rms_residual=float(np.sqrt(np.mean(r**2))), sigma=sigma, std_errors=std, covariance=cov,
         rank=rank, n_iterations=nit, converged=converged, message=message, length_mm=lc,
-        station_frames=station_frames,
+        station_frames=station_frames, misfit=misfit,
     )
     log.info("identified", model=model, estimator=estimator, formulation=formulation, method=method,
              n_poses=L.shape[0], max_residual_mm=result.max_abs_residual, rms_residual_mm=result.rms_residual,

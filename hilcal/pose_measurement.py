@@ -123,3 +123,64 @@ def pose_from_spheres(platform_measured: np.ndarray, base_measured: np.ndarray, 
     """
     return pose_from_points(platform_measured, robot.platform_spheres, base_measured, robot.base_spheres,
                             "the robot file")
+
+
+PERTURBATION_MM = 1e-3
+"""Central-difference step of a sphere coordinate in ``sphere_noise_covariance``."""
+
+
+def sphere_noise_covariance(robot: Robot, poses: np.ndarray, sigma_mm: float, length_mm: float) -> np.ndarray:
+    """[N, 6, 6] pose covariance from isotropic sphere-centre noise, propagated through the registration, in the
+    residual metric of ``hilcal.error_models.pose_difference`` (mm, rotations as mm at `length_mm`).
+
+    The CMM frame cancels in the registration and the noise is isotropic, so the base frame is used as
+    the CMM frame. The Jacobian is taken by central differences of `pose_from_spheres`.
+    """
+    from hilcal.error_models import pose_difference
+    from hilcal.kinematics import split_pose
+
+    q = np.atleast_2d(np.asarray(poses, dtype=float))
+    R, t = split_pose(q)
+    platform = np.einsum("nij,kj->nki", R, robot.platform_spheres) + t[:, None, :]
+    base = np.broadcast_to(robot.base_spheres, (len(q), *robot.base_spheres.shape))
+    points = np.concatenate([platform, base], axis=1)
+    n_p = robot.platform_spheres.shape[0]
+    n_coords = points.shape[1] * 3
+    jac = np.empty((len(q), 6, n_coords))
+    for j in range(n_coords):
+        step = np.zeros(points.shape[1:]).reshape(-1)
+        step[j] = PERTURBATION_MM
+        step = step.reshape(points.shape[1:])
+        plus = pose_from_spheres((points + step)[:, :n_p], (points + step)[:, n_p:], robot).pose
+        minus = pose_from_spheres((points - step)[:, :n_p], (points - step)[:, n_p:], robot).pose
+        jac[:, :, j] = pose_difference(plus, minus, length_mm) / (2 * PERTURBATION_MM)
+    return sigma_mm**2 * jac @ np.swapaxes(jac, 1, 2)
+
+
+def _expected_max_rms_squared(robot: Robot) -> float:
+    """E[sphere_fit_rms_mm^2] / sigma^2 for the column's definition: the larger of the two registrations' RMS.
+
+    A rigid registration of M spheres leaves 3M - 6 degrees of freedom, so RMS^2 = sigma^2 chi2(3M-6) / M.
+    """
+    dists = []
+    for m in (robot.platform_spheres.shape[0], robot.base_spheres.shape[0]):
+        dof = 3 * m - 6
+        dists.append((dof, m))
+
+    from scipy import integrate  # 0.13 s of start-up, for this one integral
+    from scipy.special import chdtr
+
+    def cdf(x: float) -> float:
+        return float(np.prod([chdtr(dof, x * m) if dof > 0 else 1.0 for dof, m in dists]))
+
+    value, _ = integrate.quad(lambda x: 1.0 - cdf(x), 0.0, np.inf, limit=200)
+    return float(value)
+
+
+def sigma_from_sphere_fit(rms_mm: np.ndarray, robot: Robot) -> tuple[float, float]:
+    """Sphere-centre sigma (mm) and its degrees of freedom from the per-row registration RMS column."""
+    values = np.asarray(rms_mm, dtype=float)
+    values = values[np.isfinite(values)]
+    factor = _expected_max_rms_squared(robot)
+    dof = values.size * 3 * (min(robot.platform_spheres.shape[0], robot.base_spheres.shape[0]) - 2)
+    return float(np.sqrt(np.mean(values**2) / factor)), float(dof)

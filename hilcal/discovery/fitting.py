@@ -18,16 +18,18 @@ import structlog
 from scipy.optimize import lsq_linear
 
 from hilcal.discovery.context import EffectContext
-from hilcal.discovery.noise import find_repeats
-from hilcal.discovery.regression import pooled_whitener, whiten
+from hilcal.discovery.noise import NoiseEstimate, find_repeats
+from hilcal.discovery.regression import cluster_robust_covariance, pooled_whitener, whiten
 from hilcal.discovery.selection import ModelState
 from hilcal.discovery.term_groups import GENERIC, TermGroup
 from hilcal.error_models import GEOMETRIC_42, implicit_residuals
 from hilcal.identification import IdentificationResult, residual_function
 from hilcal.kinematics import KinematicsError, forward_kinematics
 from hilcal.metrics import AccuracySummary
+from hilcal.misfit import Misfit, honest_covariance
 from hilcal.recording import Recording
 from hilcal.robot import Robot
+from hilcal.stations import StationFrames
 
 log = structlog.get_logger(__name__)
 
@@ -265,6 +267,32 @@ def final_fit(p: Problem, groups: list[TermGroup], start: IdentificationResult, 
     return dataclasses.replace(fit, x=x, residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))),
                                rms_residual=float(np.sqrt(np.mean(r**2))), converged=converged,
                                message=f"final refit: {message}")
+
+
+def final_covariance(p: Problem, final: IdentificationResult, groups: list[TermGroup], noise: NoiseEstimate | None,
+                     shape_scale_mm: np.ndarray, noise_mm: float) -> tuple[np.ndarray, Misfit | None]:
+    """The final model's parameter covariance, with the instrument stations' errors projected out (every error carries
+    their uncertainty): with a noise yardstick, the measured noise and the model's misfit (``hilcal.misfit``: the
+    unexplained shapes are the generic groups; the inflation is summarised over the library effects' parameters, or
+    the geometry's without any); without one, the cluster-robust sandwich of the fitted residuals."""
+    stations = p.mea.stations
+    r, J = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups),
+                             stations)(final.x)
+    if noise is None:
+        return cluster_robust_covariance(J, r, p.mea.n), None
+    raw = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))(final.x)[1]
+    frames = None if stations is None else StationFrames.of(stations, p.mea.meas, p.length_mm, p.robot.home[:3])
+    shapes, stated, k = [], [], N_GEO
+    for g in groups:
+        if g.kind == GENERIC:
+            shapes.append(p.phi(g) @ final.x[k:k + g.n_params])
+        else:
+            stated += range(k, k + g.n_params)
+        k += g.n_params
+    return honest_covariance(
+        J, r, noise.covariance[p.measure], raw.reshape(p.mea.n, 6, -1)[:, :, DL0_COLUMNS], p.mea.legs_mm,
+        p.ctx.session, prior=prior_rows(p, groups, shape_scale_mm, noise_mm), frames=frames, noise_dof=noise.dof,
+        shapes=shapes, stated=stated or range(N_GEO))
 
 
 def _inside_start(residuals: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x: np.ndarray, lo: np.ndarray,

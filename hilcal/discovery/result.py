@@ -286,6 +286,9 @@ class Diagnosis:
     station_frames: dict[int, np.ndarray] | None = None
     """Each instrument station's rigid error [dt (mm); dw (rad)] fitted with the model (``hilcal.discovery.stations``;
     the first station's is zero by definition); None: one station."""
+    misfit: Any = None
+    """Whether the model is incomplete and what its misfit adds to every standard error (``hilcal.misfit.Misfit``);
+    None without a noise yardstick (the errors are then the cluster-robust sandwich of the residuals)."""
 
     @property
     def faults(self) -> tuple[NamedEffect, ...]:
@@ -337,6 +340,8 @@ class Diagnosis:
             "cv_rms_geometry_mm": self.cv_rms_geometry_mm,
             "cv_rms_effect_mm": self.cv_rms_effect_mm,
             "noise": self.noise.to_json(),
+            "model_incomplete": None if self.misfit is None else self.misfit.incomplete,
+            "misfit": None if self.misfit is None else self.misfit.to_json(),
             "residual_to_noise": None if self.noise_ratio is None else self.noise_ratio.to_json(),
             "station_frames": None if self.station_frames is None else {
                 str(k): {"dt_mm": v[:3].tolist(), "dw_deg": np.degrees(v[3:]).tolist()}

@@ -46,6 +46,7 @@ from hilcal.discovery.findings import (
 )
 from hilcal.discovery.fitting import (
     Problem,
+    final_covariance,
     final_fit,
     fit_model,
     group_columns,
@@ -62,7 +63,6 @@ from hilcal.discovery.generic_terms import generic_groups
 from hilcal.discovery.naming import named_effects
 from hilcal.discovery.noise import NoiseLevel, noise_yardstick, sphere_noise_covariance, sphere_sources
 from hilcal.discovery.physics import library_groups
-from hilcal.discovery.regression import cluster_robust_covariance
 from hilcal.discovery.result import CandidateResult, Diagnosis, SessionShift, Step
 from hilcal.discovery.screen import (
     OUTLIER_FACTOR,
@@ -473,10 +473,9 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
     final = final_fit(p, chosen, sel.fit if chosen else geo, scales, noise_mm)
     r_final, J_final = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm,
                                          p.phi_of(chosen))(final.x)
-    # the covariance with the instrument stations' errors projected out: every error carries their uncertainty
-    cov = cluster_robust_covariance(*residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm,
-                                                       p.phi_of(chosen), p.mea.stations)(final.x)[::-1], p.mea.n)
+    cov, misfit = final_covariance(p, final, chosen, noise.chosen, scales, noise_mm)
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    final = dataclasses.replace(final, covariance=cov, std_errors=se)
     before = verify_accuracy(p, geo, [])
     after = verify_accuracy(p, final, chosen)
 
@@ -521,7 +520,7 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
         before, after, findings, named, stops, tuple(p.not_converged), model_terms, verdict,
     )
     log.info("diagnosed", effects=effects, steps=len(steps), not_converged=p.not_converged, unconfirmed=unconfirmed)
-    return Diagnosis(
+    diag = Diagnosis(
         effect=effect, effects=tuple(effects), explanation=explain.compose(answer), parameters=params, std_errors=std,
         before=before, after=after, steps=tuple(steps),
         candidates=_candidate_results(sel.first_tests, s.library, s.untestable, chosen_keys),
@@ -533,5 +532,6 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
         not_converged=tuple(p.not_converged), compensation=compensation,
         summary=(*([zero_said] if zero_said else []), *explain.summary_sentences(answer)),
         evidence=explain.evidence(answer), left_out_mm=left_out, zero_offsets_mm=offsets,
-        unconfirmed=unconfirmed, compensation_after=compensation_after,
+        unconfirmed=unconfirmed, compensation_after=compensation_after, misfit=misfit,
     )
+    return _with_sentence(diag, misfit.sentence("the parameters"), False) if misfit and misfit.incomplete else diag
