@@ -18,6 +18,7 @@ from drivers.controller_modbus import CompensationBlock, ParameterSet
 from hilcal.acceptance.uncertainty import model_uncertainty
 from hilcal.calibration import CalibrationOutcome
 from hilcal.compensation import Compensation
+from hilcal.misfit import Misfit
 from hilcal.reports.physics import physics_lines
 from hilcal.robot import Robot
 from hilcal.workspace import random_poses
@@ -54,11 +55,20 @@ def model_covariance(outcome: CalibrationOutcome, estimator: str, physics: Physi
     return (ident.covariance if ident.model == "42" else None), f"the {estimator} parameters'"
 
 
+def model_misfit(outcome: CalibrationOutcome, physics: PhysicsDecision | None) -> Misfit | None:
+    """Whether the model behind the uploaded geometry's covariance is incomplete (``hilcal.misfit``): the diagnosis'
+    when its geometry is uploaded, else the identification's (None without a noise yardstick)."""
+    if physics is not None and physics.diagnosis is not None and physics.geometry_source != "the geometric fit":
+        return physics.diagnosis.misfit
+    return outcome.identification.misfit
+
+
 def approval_detail(before: ParameterSet, new: ParameterSet, block: CompensationBlock | None, comp: Compensation,
                     outcome: CalibrationOutcome, estimator: str, physics: PhysicsDecision | None, robot: Robot,
                     samples: np.ndarray) -> dict[str, Any]:
     """Every changed parameter, the block, the physics in sentences and what can be predicted (module docstring)."""
     covariance, source = model_covariance(outcome, estimator, physics)
+    misfit = model_misfit(outcome, physics)
     spread = None
     if covariance is not None and np.all(np.isfinite(covariance)):
         spread = model_uncertainty(robot, covariance, samples).as_json()
@@ -76,6 +86,8 @@ def approval_detail(before: ParameterSet, new: ParameterSet, block: Compensation
             "model_uncertainty_basis": None if spread is None else (
                 f"{source} covariance carried to {len(samples)} workspace poses: expected error, 1 sigma (k = 2 "
                 "doubles it)"),
+            "model_incomplete": None if misfit is None else misfit.incomplete,
+            "model_incomplete_note": misfit.sentence("the parameters") if spread and misfit else "",
             "uncompensated": None if comp.uncompensated is None else comp.uncompensated.brief()}
 
 
@@ -102,6 +114,8 @@ def approval_lines(detail: dict[str, Any], diff_first: bool = False) -> list[str
     if spread:
         lines.append(f"parameter uncertainty in the workspace: RMS {spread['rms_position_mm']:.4f} mm, worst pose "
                      f"{spread['max_position_mm']:.4f} mm ({detail.get('model_uncertainty_basis', '')})")
+        if detail.get("model_incomplete_note"):
+            lines.append(detail["model_incomplete_note"])
     block = detail.get("compensation_block")
     if block:
         lines.append("compensation block: " + block_summary(block))

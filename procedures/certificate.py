@@ -170,15 +170,19 @@ def _iso_section(test: AcceptanceTest | None, rows: list[dict], cmm_cov: np.ndar
 
 
 def _model_spread(robot: Robot, plan: Any, result: Any) -> dict[str, Any] | None:
-    """The uploaded geometry's covariance carried to the approval's 64 workspace poses (None without one)."""
-    from procedures.approval import model_covariance, workspace_samples
+    """The uploaded geometry's covariance carried to the approval's 64 workspace poses (None without one), and
+    whether its model is incomplete (its misfit is then in the covariance, ``hilcal.misfit``)."""
+    from procedures.approval import model_covariance, model_misfit, workspace_samples
 
     if not result.outcomes:
         return None
     covariance, _ = model_covariance(result.outcomes[result.chosen], result.chosen, result.physics)
     if covariance is None or not np.all(np.isfinite(covariance)):
         return None
-    return model_uncertainty(robot, covariance, workspace_samples(robot, plan.seed + 1)).as_json()
+    misfit = model_misfit(result.outcomes[result.chosen], result.physics)
+    return {**model_uncertainty(robot, covariance, workspace_samples(robot, plan.seed + 1)).as_json(),
+            "model_incomplete": None if misfit is None else misfit.incomplete,
+            "model_incomplete_note": "" if misfit is None else misfit.sentence("the parameters")}
 
 
 def signoff_section(ctx: SignoffContext, robot: Robot, plan: Any, result: Any, pre_rows: list[dict],

@@ -11,6 +11,10 @@ freedom than that, it comes from the geometric fit's residuals, per component: t
 and, when the fit leaves no lack of fit, measure the same noise with more degrees of freedom (the classical pooling
 of pure error and lack of fit); when it does leave some, they measure what the verification will meet too.
 
+When the fit's residual exceeds the repeats' noise, the model is incomplete and δp carries its misfit too: the
+identification's misfit covariance (``hilcal.misfit``, the legs' discrepancy correlated over the workspace) is drawn
+on top of the noise's part.
+
 The prediction is the distribution of the maximum over the verify poses of |J_k δp + e_k|, by seeded Monte Carlo
 with the same standard normal draws at every call (common random numbers: consecutive predictions differ by the
 design, not by sampling). The noise level is itself uncertain: each draw scales it by sqrt(ν / χ²_ν) (the posterior
@@ -151,6 +155,8 @@ class Draws:
     parameters: np.ndarray
     verify: np.ndarray
     uniform: np.ndarray
+    misfit: np.ndarray = field(default_factory=lambda: np.zeros((N_PARAMETERS, 0)))
+    """[42, D]: for the part of δp that the model's misfit makes (``predict_verify_max``'s misfit_covariance)."""
     _scales: dict[tuple[int, float], np.ndarray] = field(default_factory=dict, compare=False, repr=False)
     """The χ² factors already computed (a run predicts many designs under one noise estimate)."""
 
@@ -158,7 +164,7 @@ class Draws:
     def seeded(cls, seed: int, n_verify: int, n_draws: int) -> Draws:
         rng = np.random.default_rng([seed, 0x9E7])
         return cls(rng.standard_normal((6, N_PARAMETERS, n_draws)), rng.standard_normal((n_verify, 3, n_draws)),
-                   rng.random((6, n_draws)))
+                   rng.random((6, n_draws)), rng.standard_normal((N_PARAMETERS, n_draws)))
 
     def chi2_scale(self, row: int, dof: float) -> np.ndarray:
         """sqrt(dof / χ²_dof) at the uniform draws of `row` (the factor on a σ estimated with dof degrees of freedom),
@@ -189,12 +195,15 @@ class VerifyPrediction:
     floor_upper_mm: float
     confidence: float
     noise: PoseNoise
+    model_incomplete: bool = False
+    """The parameters' part carries the model's misfit (``hilcal.misfit``: the fit's residual exceeds the noise)."""
 
     def to_json(self) -> dict:
         return {"n_rows": self.n_rows, "max_mm": self.max_mm, "low_mm": self.low_mm, "upper_mm": self.upper_mm,
                 "parameter_rms_mm": self.parameter_rms_mm, "floor_upper_mm": self.floor_upper_mm,
                 "confidence": self.confidence, "noise_sigma_mm": list(self.noise.sigma_mm),
-                "noise_dof": list(self.noise.dof), "noise_source": self.noise.source}
+                "noise_dof": list(self.noise.dof), "noise_source": self.noise.source,
+                "model_incomplete": self.model_incomplete}
 
 
 def _chi2_scale(u: np.ndarray, dof: float) -> np.ndarray:
@@ -204,11 +213,14 @@ def _chi2_scale(u: np.ndarray, dof: float) -> np.ndarray:
 
 
 def predict_verify_max(row_jacobians: np.ndarray, verify_position_jacobians: np.ndarray, noise: PoseNoise,
-                       draws: Draws, confidence: float = 0.95) -> VerifyPrediction:
+                       draws: Draws, confidence: float = 0.95, misfit_covariance: np.ndarray | None = None
+                       ) -> VerifyPrediction:
     """Distribution of max_k |J_k δp + e_k| over the verify poses (see the module docstring).
 
     row_jacobians [n, 6, 42] of the measured rows (repeats included), verify_position_jacobians [V, 3, 42]. Raises
-    numpy's LinAlgError when the rows do not identify the 42 parameters.
+    numpy's LinAlgError when the rows do not identify the 42 parameters. `misfit_covariance` (42, 42): the part of
+    δp's covariance that an incomplete model's misfit adds (``hilcal.misfit``; the identification's misfit
+    covariance), drawn on top of the noise's part.
     """
     if not 0.5 < confidence < 1:
         raise ValueError(f"confidence must be in (0.5, 1), got {confidence}")
@@ -222,10 +234,16 @@ def predict_verify_max(row_jacobians: np.ndarray, verify_position_jacobians: np.
     scale = np.stack([draws.chi2_scale(row, noise.dof[k]) for k, row in enumerate(rows)])
     weights = np.concatenate([flat @ _sqrt_psd(parts[k]) * sigma[k] for k in range(6)], axis=1)
     part = weights @ (draws.parameters * scale[:, None, :]).reshape(len(weights.T), -1)
+    extra = None if misfit_covariance is None else np.asarray(misfit_covariance, dtype=float)[:N_PARAMETERS,
+                                                                                                :N_PARAMETERS]
+    if extra is not None:
+        part = part + flat @ _sqrt_psd(extra) @ draws.misfit
     verify_noise = draws.verify * (sigma[:3, None] * scale[:3])
     worst = np.linalg.norm(part.reshape(Jv.shape[0], 3, -1) + verify_noise, axis=1).max(axis=0)
     floor = np.linalg.norm(verify_noise, axis=1).max(axis=0)
     low, mid, high = np.quantile(worst, [1.0 - confidence, 0.5, confidence])
-    per_pose = np.einsum("vij,jk,vik->v", Jv, np.einsum("k,kij->ij", sigma**2, parts), Jv)
+    covariance = np.einsum("k,kij->ij", sigma**2, parts) + (0.0 if extra is None else extra)
+    per_pose = np.einsum("vij,jk,vik->v", Jv, covariance, Jv)
     return VerifyPrediction(int(np.size(row_jacobians) // (6 * N_PARAMETERS)), float(mid), float(low), float(high),
-                            float(np.sqrt(per_pose.mean())), float(np.quantile(floor, confidence)), confidence, noise)
+                            float(np.sqrt(per_pose.mean())), float(np.quantile(floor, confidence)), confidence, noise,
+                            extra is not None)

@@ -199,29 +199,32 @@ def _candidate_index(problem: AdaptiveProblem, pose: np.ndarray) -> int:
     return int(hit[0]) if hit.size else -1
 
 
-def _prediction(problem: AdaptiveProblem, poses: np.ndarray, noise: PoseNoise | None) -> VerifyPrediction | None:
-    """The verify prediction for these commanded rows, None when they do not identify the parameters."""
+def _prediction(problem: AdaptiveProblem, poses: np.ndarray, noise: PoseNoise | None,
+                misfit: np.ndarray | None = None) -> VerifyPrediction | None:
+    """The verify prediction for these commanded rows (with an incomplete model's misfit covariance of the
+    parameters), None when they do not identify the parameters."""
     if noise is None or 6 * len(poses) <= 42:
         return None
     try:
         return predict_verify_max(pose_jacobians(problem.robot, poses), problem.verify_position_jacobians, noise,
-                                  problem.draws, problem.settings.confidence)
+                                  problem.draws, problem.settings.confidence, misfit)
     except np.linalg.LinAlgError:
         return None
 
 
-def evaluate(problem: AdaptiveProblem, poses: np.ndarray, noise: PoseNoise | None
+def evaluate(problem: AdaptiveProblem, poses: np.ndarray, noise: PoseNoise | None, misfit: np.ndarray | None = None
              ) -> tuple[VerifyPrediction | None, RuleCheck, DiagnosisMinimum]:
-    """Prediction, accuracy rule and diagnosis minimum of commanded rows [n, 6] under a noise (no measurements)."""
-    return *accuracy(problem, poses, noise), minimum_for(problem, poses)
+    """Prediction, accuracy rule and diagnosis minimum of commanded rows [n, 6] under a noise (no measurements),
+    with an incomplete model's misfit covariance of the parameters when given."""
+    return *accuracy(problem, poses, noise, misfit), minimum_for(problem, poses)
 
 
-def accuracy(problem: AdaptiveProblem, poses: np.ndarray, noise: PoseNoise | None
+def accuracy(problem: AdaptiveProblem, poses: np.ndarray, noise: PoseNoise | None, misfit: np.ndarray | None = None
              ) -> tuple[VerifyPrediction | None, RuleCheck]:
     """Prediction and accuracy rule of commanded rows [n, 6] under a noise (the Monte Carlo part of ``evaluate``)."""
     s = problem.settings
-    prediction = _prediction(problem, poses, noise)
-    earlier = _prediction(problem, poses[:-s.window], noise) if len(poses) > s.window else None
+    prediction = _prediction(problem, poses, noise, misfit)
+    earlier = _prediction(problem, poses[:-s.window], noise, misfit) if len(poses) > s.window else None
     return prediction, accuracy_rule(prediction, earlier, s.window, s.target_mm, s.min_improvement)
 
 
@@ -263,14 +266,17 @@ def _update(problem: AdaptiveProblem, state: AdaptiveState, pose: np.ndarray, le
     L, M = np.array([r.legs_mm for r in rows]), np.array([r.measured for r in rows])
     length = robot.characteristic_length_mm
     noise = repeat_noise(poses, M, length)
-    parameters, residuals = None, None
+    parameters, residuals, misfit = None, None, None
     report = identifiability(robot, poses, max_listed=42)
     unidentifiable = tuple(sorted({n for d in report.unidentifiable for n in d.coefficients},
                                   key=GEOMETRIC_42.names.index))
     if report.rank == 42 and 6 * len(rows) > 42:
         try:
-            fit = identify(robot, L, M, x0=state.parameters)
+            fit = identify(robot, L, M, x0=state.parameters, **({} if noise is None else {
+                "noise_covariance": np.broadcast_to(noise.covariance(), (len(rows), 6, 6)),
+                "noise_dof": noise.total_dof}))
             parameters, residuals = fit.x, fit.residuals
+            misfit = None if fit.misfit is None or not fit.misfit.incomplete else fit.misfit.covariance
         except IdentificationError:
             parameters = None
     repeats = noise
@@ -278,7 +284,7 @@ def _update(problem: AdaptiveProblem, state: AdaptiveState, pose: np.ndarray, le
     if noise is not None and residuals is not None and 6 * len(rows) - 42 > noise.total_dof:
         lack = "" if screening is None or not screening.lack_of_fit else " (lack of fit against the repeats)"
         noise = residual_noise(residuals, pose_jacobians(robot, poses), lack)
-    prediction, rule, minimum = evaluate(problem, poses, noise)
+    prediction, rule, minimum = evaluate(problem, poses, noise, misfit)
     if screening is None and rule.met and minimum.met and residuals is not None and repeats is not None:
         screening = _screen(problem, poses, M, residuals, parameters, repeats)
     return AdaptiveState(rows, state.elapsed_s + float(move) + problem.dwell_s, parameters, noise, prediction, rule,

@@ -94,6 +94,8 @@ def identify(
     ident = outcome.identification
     out.print(f"fit: max |residual| {ident.max_abs_residual:.4f} mm, RMS {ident.rms_residual:.4f} mm, "
               f"{ident.n_iterations} evaluations, converged={ident.converged}")
+    if ident.misfit is not None and ident.misfit.incomplete:
+        out.print(ident.misfit.sentence("the identified errors"), highlight=False, soft_wrap=True)
     hint = _diagnose_hint(rec, outcome)
     if hint:
         out.print(hint, highlight=False, soft_wrap=True)

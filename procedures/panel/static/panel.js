@@ -217,7 +217,9 @@ function uploadDetail(d) {
       <tr><th>Compensation block</th><td id="upload-block">${esc(blockSummary(d.compensation_block))}</td></tr>
       <tr><th>Basis</th><td>${esc(d.predicted_basis)}</td></tr>
       <tr><th>Parameter uncertainty in the workspace</th><td id="model-uncertainty">${spread(d.model_uncertainty)}
-        <span class="sub">${esc(d.model_uncertainty_basis || "no covariance for this estimator")}</span></td></tr>
+        <span class="sub">${esc(d.model_uncertainty_basis || "no covariance for this estimator")}</span>
+        ${d.model_incomplete_note ? `<br><span class="sub" id="model-incomplete">${esc(d.model_incomplete_note)}</span>`
+          : ""}</td></tr>
       ${d.uncompensated ? `<tr><th>Left uncompensated</th><td>${brief(d.uncompensated)}</td></tr>` : ""}
       ${(d.out_of_reach || []).length ? `<tr><th>Out of reach after the upload</th><td id="out-of-reach">
         ${d.out_of_reach.map(esc).join("<br>")}</td></tr>` : ""}

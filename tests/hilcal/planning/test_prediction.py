@@ -107,3 +107,29 @@ def test_pose_noise_refuses_nonsense():
         PoseNoise.isotropic(0.0, 0.01, 9, 9, "x")
     with pytest.raises(ValueError, match="6 positive"):
         PoseNoise((0.01,) * 5, (9.0,) * 5, False, "x")
+
+
+def test_a_models_misfit_widens_the_bound_by_its_covariance(robot, rng):
+    """The misfit's part of the parameters' covariance (hilcal.misfit) is drawn on top of the noise's: the predicted
+    maximum is the one of a Monte Carlo written here with both parts, and the prediction says the model is
+    incomplete."""
+    measure, verify = feasible_random_poses(robot, 14, rng), feasible_random_poses(robot, 10, rng)
+    J, Jv = pose_jacobians(robot, measure), pose_jacobians(robot, verify)[:, :3]
+    sigma = 0.005
+    misfit = np.zeros((42, 42))
+    dl0 = [7 * i + 6 for i in range(6)]
+    misfit[np.ix_(dl0, dl0)] = 0.02**2 * (0.5 * np.eye(6) + 0.5)  # leg offsets off by 20 µm, half of it shared
+    pred = predict_verify_max(J, Jv, PoseNoise.isotropic(sigma, sigma, 1e9, 1e9, "stated"),
+                              Draws.seeded(3, len(verify), 20000), misfit_covariance=misfit)
+    A = J.reshape(-1, 42)
+    cov = sigma**2 * np.linalg.inv(A.T @ A) + misfit
+    w, V = np.linalg.eigh(cov)
+    dp = (V * np.sqrt(np.clip(w, 0, None))) @ rng.standard_normal((42, 20000))
+    errors = np.einsum("vij,jd->vid", Jv, dp) + rng.normal(0.0, sigma, (len(verify), 3, 20000))
+    worst = np.linalg.norm(errors, axis=1).max(axis=0)
+    assert pred.max_mm == pytest.approx(np.median(worst), rel=0.03)
+    assert pred.upper_mm == pytest.approx(np.quantile(worst, 0.95), rel=0.03)
+    assert pred.to_json()["model_incomplete"] is True
+    plain = predict_verify_max(J, Jv, PoseNoise.isotropic(sigma, sigma, 1e9, 1e9, "stated"),
+                               Draws.seeded(3, len(verify), 20000))
+    assert plain.upper_mm < 0.8 * pred.upper_mm and plain.to_json()["model_incomplete"] is False
