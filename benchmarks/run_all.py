@@ -1,7 +1,7 @@
 """Run every benchmark (``make bench``): start-up, test suite, core, protocols, CMM, laser tracker, whole runs, machine
 time, panel, records, soak, diagnosis speed, and the studies that generate docs (the paper's simulation study, missing
-physics, the digital twin, physics to the machine, the adaptive plan in-process and as whole runs, gross set-up
-faults), in the order of SCRIPTS.
+physics, the coverage of the stated standard errors, the digital twin, physics to the machine, the adaptive plan
+in-process and as whole runs, gross set-up faults), in the order of SCRIPTS.
 ``--quick`` passes through.
 
 Each script runs in its own interpreter so one cannot leak state (plot backends, logging) into the other.
@@ -21,8 +21,8 @@ SCRIPTS = ("bench_startup.py", "bench_tests.py", "bench_core.py", "bench_protoco
            "bench_tracker.py", "bench_run.py", "bench_machine_time.py", "bench_panel.py", "bench_records.py",
            "bench_soak.py",
            "studies/paper_study.py", "bench_diagnose.py", "studies/diagnosis_study.py",
-           "studies/diagnosis_twin.py", "studies/physics_study.py", "studies/adaptive_study.py",
-           "studies/adaptive_run_study.py", "studies/gross_faults_study.py")
+           "studies/coverage_study.py", "studies/diagnosis_twin.py", "studies/physics_study.py",
+           "studies/adaptive_study.py", "studies/adaptive_run_study.py", "studies/gross_faults_study.py")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

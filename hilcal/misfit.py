@@ -58,11 +58,13 @@ class Misfit:
     """The kernel length chosen (the legs' recorded ranges); None when the model is complete."""
     inflation: float = 1.0
     """Median over the stated parameters of their standard error over the noise part alone."""
+    largest: float = 1.0
+    """The largest such ratio."""
     covariance: np.ndarray | None = field(default=None, repr=False, compare=False)
     """(p, p) the misfit's part of the parameters' covariance (None when the model is complete)."""
 
     def sentence(self, what: str = "the model") -> str:
-        """The model-incomplete sentence (empty for a complete model); `what` names the fitted model."""
+        """The model-incomplete sentence (empty for a complete model); `what` names the fitted parameters."""
         if not self.incomplete:
             return ""
         why = []
@@ -71,19 +73,23 @@ class Misfit:
                        f"(noise allows up to {self.tolerance:.2f}x)")
         if self.shapes:
             why.append(f"{self.shapes} shape(s) that no library effect names were needed")
-        legs = ", ".join(f"{1000 * s:.1f}" for s in self.leg_sigma_mm)
+        carried = []
+        if any(s > 0 for s in self.leg_sigma_mm):
+            legs = ", ".join(f"{1000 * s:.1f}" for s in self.leg_sigma_mm)
+            carried.append(f"the misfit as a discrepancy of the legs' lengths, correlated along each leg's stroke, "
+                           f"over the pose and over each session (per leg {legs} µm, over {self.length:g} of the "
+                           "recorded ranges)")
+        if self.shapes:
+            carried.append("each unexplained shape's possible scaling with its leg's length")
         return (f"The model is incomplete: {' and '.join(why) or 'its residual exceeds the noise'}. Every ± of "
-                f"{what} carries the misfit as a discrepancy of the legs' lengths, correlated over the leg's stroke, "
-                f"over the pose and over each session (per leg {legs} µm"
-                + (f", over {self.length:g} of the recorded ranges" if self.length else "")
-                + (", with each unexplained shape's possible scaling with its leg's length" if self.shapes else "")
-                + f"): the standard errors are {self.inflation:.2f}x those of the measurement noise alone (median).")
+                f"{what} carries {' and '.join(carried) or 'the misfit'}: the standard errors are "
+                f"{self.inflation:.2f}x those of the measurement noise alone (median; up to {self.largest:.2f}x).")
 
     def to_json(self) -> dict[str, object]:
         return {"model_incomplete": self.incomplete, "residual_to_noise": self.residual_to_noise,
                 "tolerance": self.tolerance, "unexplained_shapes": self.shapes,
                 "leg_discrepancy_sigma_mm": list(self.leg_sigma_mm), "kernel_length": self.length,
-                "inflation": self.inflation, "sentence": self.sentence()}
+                "inflation": self.inflation, "largest_inflation": self.largest, "sentence": self.sentence()}
 
 
 def _estimator(J: np.ndarray, prior: np.ndarray | None) -> tuple[np.ndarray, int]:
@@ -202,6 +208,6 @@ def honest_covariance(
     cov = c_noise + c_misfit
     diag = np.diag(c_noise)[stated]
     ok = diag > 0
-    inflation = float(np.median(np.sqrt(np.diag(cov)[stated][ok] / diag[ok]))) if ok.any() else 1.0
+    grown = np.sqrt(np.diag(cov)[stated][ok] / diag[ok]) if ok.any() else np.ones(1)
     return cov, Misfit(True, ratio, tolerance, len(shapes), tuple(float(v) for v in np.sqrt(s2)), float(length),
-                       inflation, c_misfit)
+                       float(np.median(grown)), float(np.max(grown)), c_misfit)
