@@ -19,8 +19,10 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import signal
+import threading
 import time
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Generator, Iterator
 from contextlib import AbstractContextManager
 from typing import Any
 
@@ -43,6 +45,23 @@ EngineObserver = Callable[[str, dict[str, Any]], None]
 executed, "done" {message, result} after, "paused" {message}, "resumed" {message}, "held" {link, message, error},
 "recovered" {link, message, held_s}, "stopped" {reason},
 "ended". An observer's exceptions are logged and ignored; a KeyboardInterrupt it raises is a Ctrl-C."""
+
+
+@contextlib.contextmanager
+def _ctrl_c_noted() -> Iterator[list[bool]]:
+    """While the procedure computes its next message (a model refit, an identification), a Ctrl-C is noted, not raised:
+    a generator that an exception left cannot go on, so the pause waits for the next message, as at a device step.
+    Only in the main thread with Python's own handler in place (a signal handler can be set nowhere else)."""
+    noted: list[bool] = []
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield noted
+        return
+    signal.signal(signal.SIGINT, lambda *_: noted.append(True))
+    try:
+        yield noted
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 class RunInterrupted(RuntimeError):
@@ -104,8 +123,9 @@ class Engine:
         self._publish("started")
         try:
             while True:
-                msg = procedure.send(result)
-                result = self._dispatch_pausable(msg)
+                with _ctrl_c_noted() as noted:
+                    msg = procedure.send(result)
+                result = self._dispatch_pausable(msg, paused=bool(noted))
         except StopIteration as done:
             return done.value
         except KeyboardInterrupt:
@@ -120,14 +140,18 @@ class Engine:
         finally:
             self._publish("ended")
 
-    def _dispatch_pausable(self, msg: object) -> Any:
-        """Ctrl-C pauses: motion stops; an operator may go on (the message is executed again) or abort.
+    def _dispatch_pausable(self, msg: object, paused: bool = False) -> Any:
+        """Ctrl-C pauses: motion stops; an operator may go on (the message is executed again) or abort. `paused`: a
+        Ctrl-C came while the procedure computed this message; the pause comes before it is executed.
 
         Every message is safe to repeat: a move goes to the same target, a journaled measurement is not
         taken twice, and an upload is settled by reading the live set back. Unattended runs abort.
         """
         while True:
             try:
+                if paused:
+                    paused = False
+                    raise KeyboardInterrupt
                 self._publish("message", message=msg)
                 result = self.guard.run(msg, self._dispatch)
                 self._publish("done", message=msg, result=result)

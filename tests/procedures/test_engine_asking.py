@@ -129,3 +129,26 @@ def test_bar_aside_does_nothing_without_a_terminal():
         with bar_aside(bar):
             assert bar.live.is_started
             assert screen.getvalue() == ""
+
+
+def test_a_ctrl_c_while_the_procedure_computes_pauses_before_its_next_message(devices, tmp_path):
+    """A Ctrl-C that lands in the procedure's own work (a model refit between two poses) is kept for the next
+    message: the run pauses there and goes on, instead of aborting (a generator an exception left cannot go on)."""
+    import time
+
+    robot = devices.robot
+    home = inverse_kinematics(Geometry.nominal(robot), robot.home)
+
+    def thinking():
+        yield m.Enable()
+        os.kill(os.getpid(), signal.SIGINT)  # the operator presses Ctrl-C while the procedure computes
+        time.sleep(0.05)
+        yield m.MoveLegs(m.as_tuple(home), "home")
+        return "went on"
+
+    log = _Log()
+    with Journal(tmp_path / "j.sqlite") as journal:
+        engine = Engine(devices, journal, confirm=log.confirm, asking=log.asking)
+        assert engine.run(thinking()) == "went on"
+        assert [e["data"]["message"] for e in journal.events("resumed_after_pause")] == ["MoveLegs"]
+    assert ("asked Paused: motion stopped. Continue the run?", True) in log.events
