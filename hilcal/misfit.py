@@ -63,7 +63,7 @@ class Misfit:
     covariance: np.ndarray | None = field(default=None, repr=False, compare=False)
     """(p, p) the misfit's part of the parameters' covariance (None when the model is complete)."""
 
-    def sentence(self, what: str = "the model") -> str:
+    def sentence(self, what: str = "the parameters") -> str:
         """The model-incomplete sentence (empty for a complete model); `what` names the fitted parameters."""
         if not self.incomplete:
             return ""
