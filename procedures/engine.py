@@ -57,11 +57,22 @@ def _ctrl_c_noted() -> Iterator[list[bool]]:
             signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
         yield noted
         return
-    signal.signal(signal.SIGINT, lambda *_: noted.append(True))
+
+    def note(*_: Any) -> None:
+        noted.append(True)
+
+    note.notes_ctrl_c = True  # type: ignore[attr-defined]
+    signal.signal(signal.SIGINT, note)
     try:
         yield noted
     finally:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def ctrl_c_is_the_runs(handler: Any) -> bool:
+    """Whether Ctrl-C is the run's own: Python's default handler, or the engine noting it while the procedure
+    computes (a pause sent then is taken at the next message)."""
+    return handler is signal.default_int_handler or bool(getattr(handler, "notes_ctrl_c", False))
 
 
 class RunInterrupted(RuntimeError):

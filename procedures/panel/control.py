@@ -20,6 +20,7 @@ from typing import Any
 
 from procedures import messages as m
 from procedures.approval import approval_lines
+from procedures.engine import ctrl_c_is_the_runs
 
 YES = ("y", "yes")
 NO = ("n", "no")
@@ -270,7 +271,7 @@ class OperatorControl:
                 raise PanelRequestError("the run is not running")
             if self._paused or self._pause_via is not None:
                 raise PanelRequestError("the run is already paused")
-            if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+            if not ctrl_c_is_the_runs(signal.getsignal(signal.SIGINT)):
                 raise PanelRequestError("this process handles Ctrl-C itself; pause at the terminal", 503)
             self._pause_via = via
             if self._dispatching:
