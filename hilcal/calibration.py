@@ -84,6 +84,15 @@ def recording_noise(rec: Recording, robot: Robot) -> tuple[np.ndarray, float | N
     return sphere_noise_covariance(robot, rec.meas, sigma, robot.characteristic_length_mm), dof
 
 
+def stated_pose_noise(n_rows: int, robot: Robot, pose_sigma: tuple[float, float]) -> np.ndarray:
+    """[n, 6, 6] pose noise in the residual metric from a stated standard deviation per position coordinate (mm) and
+    per orientation axis (deg): an instrument that states its pose noise (a laser tracker's MPE through its
+    registrations)."""
+    position_mm, orientation_deg = pose_sigma
+    spread = np.array([position_mm] * 3 + [np.radians(orientation_deg) * robot.characteristic_length_mm] * 3)
+    return np.broadcast_to(np.diag(spread**2), (n_rows, 6, 6)).copy()
+
+
 def calibrate(rec: Recording, robot: Robot, **identify_options: Any) -> CalibrationOutcome:
     """Identify on the measure rows (options as for `identify`) and evaluate on the verify rows; a least-squares fit
     of the 42-parameter model gets the recording's noise (``recording_noise``) unless the options give one."""

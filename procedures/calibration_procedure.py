@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from drivers.controller_modbus import CompensationBlock, ParameterSet
-from hilcal.calibration import CalibrationOutcome, calibrate
+from hilcal.calibration import CalibrationOutcome, calibrate, stated_pose_noise
 from hilcal.compensation import Compensation, ControllerGeometry, compensate, out_of_reach
 from hilcal.kinematics import forward_kinematics, inverse_kinematics
 from hilcal.leg_compensation import LegCompensation
@@ -272,7 +272,10 @@ def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptio
     rec = recording_from_rows(rows, robot)
     result = ProcedureResult("measured", recording=rec, chosen=options.estimator, before_params=before,
                              adaptive=adaptive, acquisition=noted)
-    result.outcomes = {est: calibrate(rec, robot, estimator=est) for est in ("ls", "linf")}
+    stated = {} if options.pose_sigma is None else {  # the instrument states its pose noise (a tracker's MPE)
+        "noise_covariance": stated_pose_noise(int(np.sum(rec.phase == "measure")), robot, options.pose_sigma)}
+    result.outcomes = {est: calibrate(rec, robot, estimator=est, **(stated if est == "ls" else {}))
+                       for est in ("ls", "linf")}
     controller = controller_info(before, info)
     physics = decide(rec, robot, result.outcomes[options.estimator], controller, physics=options.physics,
                      joint_bound_mm=options.joint_bound_mm, offset_bound_mm=options.offset_bound_mm,
