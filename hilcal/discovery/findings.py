@@ -109,13 +109,16 @@ def _holm(p: np.ndarray) -> np.ndarray:
 
 def session_shift(ctx: EffectContext, measure: np.ndarray, leg_res: np.ndarray, rec: Recording,
                   predict: Callable[[np.ndarray, np.ndarray], np.ndarray],
-                  unknown: np.ndarray | None = None) -> SessionShift | None:
+                  unknown: np.ndarray | None = None,
+                  model_variance: Callable[[np.ndarray], np.ndarray] | None = None) -> SessionShift | None:
     """Per-leg mean residual of verify rows in sessions without measure rows (t test per leg, Holm over legs).
 
     Such a step is itself a finding: the machine was re-homed or a transducer's zero moved between the
     sessions. It is estimated on the verify rows themselves, so the corrected verify error is not held out.
     `predict(rows, leg_offsets_mm)` gives the model's poses for those rows with extra leg offsets. Rows in
     `unknown` (a term of the model cannot apply there: its history is unknown) do not enter the estimate.
+    `model_variance(rows)` (6,): the variance the model's own uncertainty leaves in each leg's mean residual there
+    (mm²); it is added to the rows' scatter, so a step the model cannot rule out is not named.
     """
     later = ~measure & ~np.isin(ctx.session, np.unique(ctx.session[measure]))
     known = later if unknown is None else later & ~unknown
@@ -125,6 +128,8 @@ def session_shift(ctx: EffectContext, measure: np.ndarray, leg_res: np.ndarray, 
     res = leg_res[known]
     mean = res.mean(axis=0)
     se = res.std(axis=0, ddof=1) / np.sqrt(n)
+    if model_variance is not None:
+        se = np.sqrt(se**2 + model_variance(known))
     p = _holm(2 * stdtr(n - 1, -np.abs(mean) / np.maximum(se, 1e-300)))
     legs = tuple(int(i) + 1 for i in np.flatnonzero(p < SHIFT_ALPHA))
     corrected = None

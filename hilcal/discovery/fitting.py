@@ -29,7 +29,7 @@ from hilcal.metrics import AccuracySummary
 from hilcal.misfit import Misfit, honest_covariance
 from hilcal.recording import Recording
 from hilcal.robot import Robot
-from hilcal.stations import StationFrames
+from hilcal.stations import StationFrames, remove_frames
 
 log = structlog.get_logger(__name__)
 
@@ -365,6 +365,40 @@ def leg_residuals(p: Problem, fit: IdentificationResult, groups: list[TermGroup]
     if groups:
         legs = legs + np.concatenate([g.phi(p.ctx_all) for g in groups], axis=2) @ fit.x[N_GEO:]
     return implicit_residuals(fit.geometry(p.robot), legs, p.rec.meas)
+
+
+def mean_residual_variance(p: Problem, fit: IdentificationResult, groups: list[TermGroup], cov: np.ndarray,
+                           rows: np.ndarray, step: float = 1e-6) -> np.ndarray:
+    """(6,) the variance (mm²) of the model's share of each leg's mean residual over `rows`: what the fitted
+    parameters' uncertainty (`cov`) leaves in it. With instrument stations, the rows' stations' frames move with the
+    parameters (re-estimated from the measure rows), so their uncertainty is counted too. By central differences."""
+    rows = np.asarray(rows)
+    stations = p.mea.stations
+    frames = None if stations is None else StationFrames.of(stations, p.mea.meas, p.length_mm, p.robot.home[:3])
+    fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
+    row_stations = None if frames is None or p.rec.stations is None else p.rec.stations[rows]
+
+    def mean(x: np.ndarray) -> np.ndarray:
+        moved = dataclasses.replace(fit, x=x)
+        res = leg_residuals(p, moved, groups)[rows]
+        if row_stations is not None:
+            meas = remove_frames(p.rec.meas[rows], row_stations, frames.estimate(fun(x)[0]), p.length_mm,
+                                 p.robot.home[:3])
+            legs = p.rec.legs_mm[rows]
+            if groups:
+                legs = legs + np.concatenate([g.phi(p.ctx_all.rows(rows)) for g in groups], axis=2) @ x[N_GEO:]
+            res = implicit_residuals(moved.geometry(p.robot), legs, meas)
+        return res.mean(axis=0)
+
+    scale = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    G = np.zeros((6, fit.x.size))
+    for k in np.flatnonzero(scale > 0):
+        h = step * max(scale[k], 1e-9) / max(float(np.max(scale)), 1e-12) + step
+        up, down = fit.x.copy(), fit.x.copy()
+        up[k] += h
+        down[k] -= h
+        G[:, k] = (mean(up) - mean(down)) / (2.0 * h)
+    return np.einsum("ij,jk,ik->i", G, cov, G)
 
 
 def model_state(p: Problem, fit: IdentificationResult, groups: list[TermGroup]) -> tuple[ModelState, np.ndarray]:

@@ -53,6 +53,7 @@ from hilcal.discovery.fitting import (
     groups_columns,
     judged_verify_mm,
     leg_residuals,
+    mean_residual_variance,
     model_state,
     predict,
     shape_scales,
@@ -485,7 +486,8 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
         ratio = noise_comparison(p.robot, p.mea.meas, noise.chosen.covariance[p.measure], (r_geo, J_geo),
                                  (r_final, J_final), p.length_mm)
     shift = session_shift(p.ctx_all, p.measure, leg_residuals(p, final, chosen), rec,
-                          lambda rows, offsets: predict(p, final, chosen, rows, offsets), unknown_terms(p, chosen))
+                          lambda rows, offsets: predict(p, final, chosen, rows, offsets), unknown_terms(p, chosen),
+                          lambda rows: mean_residual_variance(p, final, chosen, cov, rows))
     steps = _judge(p, geo, sel, shift)
     chosen_keys = {g.key for g in chosen}
     unconfirmed = tuple(dict.fromkeys(s.key for s in steps if s.confirmed is False and s.key in chosen_keys))

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from hilcal.discovery.search import diagnose
-from hilcal.discovery.stations import TOLERANCE_MM
 from hilcal.planning import design
 from hilcal.robot import default_robot
 from procedures.cli.simulated_recording import RecordingOptions, simulate_recording
@@ -64,4 +63,9 @@ def test_zero_shifts_between_set_ups_are_found_on_their_legs_only() -> None:
         values = [(v, diag.std_errors[n]) for n, v in named.items() if n.startswith(f"leg{leg}_")]
         for value, se in values:
             assert abs(abs(value) - abs(shift[leg - 1])) < 2 * se, (leg, value, se)
-    assert TOLERANCE_MM > 0
+    # no other leg named: neither among the sessions' shifts nor in the later verify session, whose step is judged
+    # with the model's own uncertainty there (the set-up's frame and the shifts are fitted from 14 poses)
+    assert diag.session_shift is None or set(diag.session_shift.legs) <= {2, 5}, diag.explanation
+    for sentence in diag.summary:
+        for leg in (1, 3, 4, 6):
+            assert f"leg {leg} reads" not in sentence, sentence
