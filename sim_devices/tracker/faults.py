@@ -7,14 +7,12 @@ Faults: unknown packets before the answer, a cut answer, silence, a late answer,
 
 from __future__ import annotations
 
-import threading
-from collections import Counter
-from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 from hilcal.protocols.emscon import HEADER, DataType
+from sim_devices.command_faults import CommandFaults
 from sim_devices.tracker.config import Fault, FaultRates
 
 GARBAGE_TYPE_BASE = 1000
@@ -32,74 +30,32 @@ class FaultPlan:
     beam_break: bool = False
 
 
-NO_FAULTS = FaultPlan()
 
 
-class FaultInjector:
-    """Seeded fault rates plus one-shot injections; thread-safe, changeable while the server runs."""
+class FaultInjector(CommandFaults):
+    """Seeded fault rates plus one-shot injections and a hang; thread-safe, changeable while the server runs."""
+
+    fault_type = Fault
+    rates_type = FaultRates
+    plan_type = FaultPlan
 
     def __init__(self, rates: FaultRates, seed: int, hang_after: int | None = None) -> None:
-        self._lock = threading.Lock()
-        self._rates = rates
+        super().__init__(rates, seed, 0x7AC)
         self._hang_after = hang_after
         self._drawn = 0
-        self._pending: Counter[tuple[Fault, str | None]] = Counter()
-        self._rng = np.random.default_rng([seed, 0x7AC])
-        self.applied: Counter[Fault] = Counter()
-        """How often each fault has been applied so far."""
 
-    def set_rates(self, rates: FaultRates | Mapping[str, float]) -> None:
-        """Replace the per-command fault probabilities."""
-        with self._lock:
-            self._rates = rates if isinstance(rates, FaultRates) else FaultRates.model_validate(dict(rates))
-
-    def inject(self, fault: Fault | str, count: int = 1, command: str | None = None) -> None:
-        """Apply ``fault`` to the next ``count`` eligible commands (only commands named ``command``, e.g.
-        ``"GoPosition"``, if given)."""
-        with self._lock:
-            self._pending[(Fault(fault), command)] += count
-
-    def pending(self) -> int:
-        """One-shot injections not yet applied."""
-        with self._lock:
-            return sum(self._pending.values())
-
-    def clear(self) -> None:
-        """No more faults: zero rates, no pending injections."""
-        with self._lock:
-            self._rates = FaultRates()
-            self._pending.clear()
+    def eligible(self, fault: Fault, command: str) -> bool:
+        """A beam break only during a measurement."""
+        return fault is not Fault.BEAM_BREAK or command == "StartMeasurement"
 
     def draw(self, command: str) -> FaultPlan:
-        """Decide the faults of the next command (no rates and nothing pending: none, drawing no random number)."""
+        """Decide the faults of the next command: silence for good once the hang's command count is passed."""
         with self._lock:
             self._drawn += 1
             if self._hang_after is not None and self._drawn > self._hang_after:
                 self.applied[Fault.SILENCE] += 1
                 return FaultPlan(silence=True)
-            if not any(self._pending.values()) and not any(getattr(self._rates, f.value) for f in Fault):
-                return NO_FAULTS
-            chosen: dict[Fault, bool] = {}
-            for fault in Fault:
-                if fault is Fault.BEAM_BREAK and command != "StartMeasurement":
-                    chosen[fault] = False
-                    continue
-                hit = False
-                for key in ((fault, command), (fault, None)):
-                    if self._pending[key] > 0:
-                        self._pending[key] -= 1
-                        hit = True
-                        break
-                rate = getattr(self._rates, fault.value)
-                if rate > 0 and self._rng.random() < rate:
-                    hit = True
-                chosen[fault] = hit
-            if chosen[Fault.SILENCE]:
-                chosen = {f: f is Fault.SILENCE for f in Fault}
-            for fault, hit in chosen.items():
-                if hit:
-                    self.applied[fault] += 1
-            return FaultPlan(**{f.value: hit for f, hit in chosen.items()})
+            return self._draw_locked(command)
 
     def garbage_packet(self) -> bytes:
         """A well-framed packet of a data type the AT4xx definitions lack, with a random body."""
