@@ -20,8 +20,8 @@ import structlog
 from _docs import write_doc
 from scipy.spatial.transform import Rotation
 
-from drivers.cmm_probing import REGISTERED_DEG, REGISTERED_MM
-from drivers.cmm_serial import SerialCmm
+from drivers.cmm.probing import REGISTERED_DEG, REGISTERED_MM
+from drivers.cmm.serial import SerialCmm
 from hilcal.robot import default_robot
 from sim_devices.cmm.config import CmmServerConfig
 from sim_devices.cmm.server import start_cmm_server

@@ -25,7 +25,7 @@ import structlog
 from _docs import write_doc
 from scipy.spatial.transform import Rotation
 
-from drivers.cmm_probing import REGISTERED_DEG, REGISTERED_MM
+from drivers.cmm.probing import REGISTERED_DEG, REGISTERED_MM
 from hilcal.identification import identify
 from hilcal.kinematics import Geometry, forward_kinematics, inverse_kinematics
 from hilcal.metrics import pose_errors

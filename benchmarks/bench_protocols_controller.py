@@ -22,8 +22,8 @@ import numpy as np
 import structlog
 from _docs import write_doc
 
-from drivers.controller_can import ControllerCan
-from drivers.controller_modbus import ControllerParams
+from drivers.controller.hilcal_can import ControllerCan
+from drivers.controller.modbus import ControllerParams
 from hilcal.robot import Robot, default_robot
 from sim_devices.controller.can_bus_server import CanBusServer
 from sim_devices.controller.can_peer import ControllerCanPeer

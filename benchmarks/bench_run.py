@@ -109,9 +109,9 @@ def _timed(targets: list[tuple[Any, str, Callable[[tuple], str]]]) -> Iterator[d
 
 def pose_breakdown(work: Path) -> tuple[dict[str, list[float]], dict]:
     """A near-instant run in this process with the pose loop's parts timed; (totals by part, phase figures)."""
-    import drivers.cmm_base as cmm_base
-    from drivers.cmm_serial import SerialCmm
-    from drivers.controller_can import ControllerCan
+    import drivers.cmm.base as cmm_base
+    from drivers.cmm.serial import SerialCmm
+    from drivers.controller.hilcal_can import ControllerCan
     from procedures.cli.app import app
     from procedures.engine import Engine
     from procedures.journal import Journal
@@ -217,8 +217,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             "commands of a pose crosses the pty twice and is parsed and answered by the Python simulator (about "
             "0.2 ms of processor time on both sides, the rest is the two processes waking each other), and each leg "
             "move is one SLCAN write of its three setpoint frames, answered by the acknowledgement and the new "
-            "status in one piece (the driver reads the port in chunks, `drivers/slcan_bus.py`). On a real station "
-            "these are the devices' own latencies (socketcan, a CMM's controller). The sphere fits (scipy's "
+            "status in one piece (the driver reads the port in chunks, `drivers/controller/slcan_bus.py`). On a real "
+            "station these are the devices' own latencies (socketcan, a CMM's controller). The sphere fits (scipy's "
             "least_squares) and the rest of the measurement are the computation a pose needs; the journal commit is "
             "one fsynced SQLite transaction per pose, before the next move, so no measurement is lost. On 2 CPUs the "
             "figures grow with the load of other work (each wake-up waits for a free CPU): see the load average "

@@ -7,7 +7,7 @@ registered the base; then each pose's registration (only a prediction: every pos
 names the instrument's link for the link guard and the report (``"cmm"``, ``"tracker"``).
 
 A laser tracker is set up again during a run (for the line of sight, or knocked): its searches find the monuments
-(``drivers.tracker_pose``), its ``StationLog`` counts the stations (``drivers.tracker_station``), and every row's
+(``drivers.tracker.pose``), its ``StationLog`` counts the stations (``drivers.tracker.station``), and every row's
 ``extra`` says the station and where the tracker stood (``station``, ``station_pose``), with ``station_change`` on the
 first pose of a new station. A monument not found where the previous pose's registration puts it is ``TrackerMoved``:
 the tracker moved farther than the searches reach.
@@ -22,11 +22,11 @@ from typing import Any
 import numpy as np
 import structlog
 
-from drivers.cmm_base import CmmInterface
-from drivers.cmm_probing import REGISTERED_DEG, REGISTERED_MM
-from drivers.tracker_base import Environment, TrackerDriverError, TrackerInterface
-from drivers.tracker_pose import TargetNotFound, TrackerPoseConfig, TrackerPoser
-from drivers.tracker_station import StationLog, station_pose
+from drivers.cmm.base import CmmInterface
+from drivers.cmm.probing import REGISTERED_DEG, REGISTERED_MM
+from drivers.tracker.base import Environment, TrackerDriverError, TrackerInterface
+from drivers.tracker.pose import TargetNotFound, TrackerPoseConfig, TrackerPoser
+from drivers.tracker.station import StationLog, station_pose
 from hilcal.robot import Robot
 
 log = structlog.get_logger(__name__)
@@ -82,7 +82,7 @@ class PoseInstrument(abc.ABC):
 
 
 class CmmPoseInstrument(PoseInstrument):
-    """A CMM: the robot file's tooling spheres, probed by ``drivers.cmm_probing``."""
+    """A CMM: the robot file's tooling spheres, probed by ``drivers.cmm.probing``."""
 
     kind = link = "cmm"
 
@@ -108,7 +108,7 @@ class CmmPoseInstrument(PoseInstrument):
 
 
 class TrackerPoseInstrument(PoseInstrument):
-    """A laser tracker: the station's platform targets and base monuments, found by ``drivers.tracker_pose``."""
+    """A laser tracker: the station's platform targets and base monuments, found by ``drivers.tracker.pose``."""
 
     kind = link = "tracker"
 
@@ -130,7 +130,7 @@ class TrackerPoseInstrument(PoseInstrument):
         self.stations = StationLog(self.base_monuments, *mpe_um)
         self.registered = False
         """Whether a pose of this session registered the base (then a monument not found means the tracker moved)."""
-        """The stations so far; ``mpe_um`` (constant µm, µm/m) sets what a move is (``drivers.tracker_station``)."""
+        """The stations so far; ``mpe_um`` (constant µm, µm/m) sets what a move is (``drivers.tracker.station``)."""
 
     def _reflector_id(self) -> int:
         known = self.tracker.reflectors()

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.controller_modbus import CompensationBlock, ParameterSet
+from drivers.controller.modbus import CompensationBlock, ParameterSet
 from hilcal.acceptance.uncertainty import model_uncertainty
 from hilcal.calibration import CalibrationOutcome
 from hilcal.compensation import Compensation

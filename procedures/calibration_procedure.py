@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.controller_modbus import CompensationBlock, ParameterSet
+from drivers.controller.modbus import CompensationBlock, ParameterSet
 from hilcal.calibration import CalibrationOutcome, calibrate, stated_pose_noise
 from hilcal.compensation import Compensation, ControllerGeometry, compensate, out_of_reach
 from hilcal.kinematics import forward_kinematics, inverse_kinematics

@@ -1,13 +1,13 @@
 """The engine: executes a procedure's messages against devices, journaling each result before going on.
 
-Devices (`procedures.station.Devices`) hold a `drivers.controller_base.ControllerInterface`, a
-`drivers.controller_modbus.ControllerParams`, the measuring instrument (`drivers.instrument.PoseInstrument`: a CMM
+Devices (`procedures.station.Devices`) hold a `drivers.controller.base.ControllerInterface`, a
+`drivers.controller.modbus.ControllerParams`, the measuring instrument (`drivers.instrument.PoseInstrument`: a CMM
 or a laser tracker, each keeping its own alignment to the base) and the robot. Short link drop-outs are ridden
 through (`procedures.link_guard.LinkGuard`); a fault, a link that stays down or an operator abort stops motion, keeps
 the journal and raises `RunInterrupted` with the way to resume. An optional observer (the operator panel) is told of
 every message, result, pause and stop.
 
-A laser tracker set up again during the run starts a new station (``drivers.tracker_station``): its rows say their
+A laser tracker set up again during the run starts a new station (``drivers.tracker.station``): its rows say their
 ``station`` and the first row of each new one its ``station_change``, journaled too as a ``station_change`` event; a
 resumed run continues the count from the journal's last row. A tracker moved farther than its searches reach
 (``TrackerMoved``) stops an unattended run; an attended one asks the operator to set it up near its place and
@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from drivers.controller_modbus import CompensationBlock, ParameterSet
+from drivers.controller.modbus import CompensationBlock, ParameterSet
 from drivers.instrument import MeasuredPose, TrackerMoved
 from hilcal.protocols.controller_states import MOTION_STATES, ControllerState
 from hilcal.protocols.registers import Capability

@@ -22,10 +22,10 @@ import numpy as np
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from drivers.cmm_base import CmmConnectionError, CmmProtocolError, CmmTimeout
-from drivers.controller_base import CommandTimeout, ControllerLost
-from drivers.controller_modbus import ModbusTransportError
-from drivers.tracker_base import TrackerConnectionError, TrackerProtocolError, TrackerTimeout
+from drivers.cmm.base import CmmConnectionError, CmmProtocolError, CmmTimeout
+from drivers.controller.base import CommandTimeout, ControllerLost
+from drivers.controller.modbus import ModbusTransportError
+from drivers.tracker.base import TrackerConnectionError, TrackerProtocolError, TrackerTimeout
 from hilcal.protocols.controller_states import MOTION_STATES, ControllerState
 from procedures import messages as m
 from procedures.journal import Journal

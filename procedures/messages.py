@@ -87,7 +87,7 @@ class Recall:
 @dataclass(frozen=True)
 class Upload:
     """Transactional parameter upload (staging, CRC, read-back, commit, read-back, save), journaled; with a
-    compensation block (drivers.parameter_sets.CompensationBlock) the block goes in the same transaction."""
+    compensation block (drivers.controller.parameter_sets.CompensationBlock) the block goes in the same transaction."""
 
     params: object
     save: bool

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from drivers.tracker_station import stations_summary
+from drivers.tracker.station import stations_summary
 from hilcal.metrics import AccuracySummary, pose_errors
 from hilcal.planning.machine_time import TimeEstimate
 from hilcal.recording import write_recording

@@ -38,9 +38,9 @@ Example::
     identity = "Leitz PMM-C, serial 4711"   # for the certificate (procedures.signoff.CmmIdentity)
     stated_uncertainty_mm = 0.004      # expanded U (k = 2) of one measured sphere-centre coordinate
     calibration_due = 2027-03-31       # the CMM's own calibration
-    [cmm.serial]                       # drivers.cmm_serial.SerialCmmConfig
+    [cmm.serial]                       # drivers.cmm.serial.SerialCmmConfig
     command_timeout_s = 30.0
-    [cmm.probing]                      # drivers.cmm_base.ProbingConfig
+    [cmm.probing]                      # drivers.cmm.base.ProbingConfig
     probe_sigma_mm = 0.002
 
     [motion]
@@ -80,13 +80,13 @@ import numpy as np
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from drivers.cmm_base import ProbingConfig, as_transform
-from drivers.cmm_serial import SerialCmm, SerialCmmConfig
-from drivers.cmm_types import DEFAULT_ALIGNMENT_DEG, DEFAULT_ALIGNMENT_MM
-from drivers.controller_can import ControllerCan
-from drivers.controller_modbus import ControllerParams
+from drivers.cmm.base import ProbingConfig, as_transform
+from drivers.cmm.serial import SerialCmm, SerialCmmConfig
+from drivers.cmm.types import DEFAULT_ALIGNMENT_DEG, DEFAULT_ALIGNMENT_MM
+from drivers.controller.hilcal_can import ControllerCan
+from drivers.controller.modbus import ControllerParams
 from drivers.instrument import CmmPoseInstrument, PoseInstrument, TrackerPoseInstrument
-from drivers.tracker_emscon import EmsconTracker
+from drivers.tracker.emscon import EmsconTracker
 from hilcal.protocols.toml_text import toml_lines
 from hilcal.robot import Robot, RobotFileError, load_robot
 from procedures.link_guard import LinksSection

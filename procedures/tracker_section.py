@@ -20,9 +20,9 @@ tracker (``kind = "tracker"``)::
     environment = { temperature_c = 20.5, pressure_hpa = 1002.0, humidity_pct = 45.0 }   # as measured at the station
     platform_targets_mm = [[950.0, 0.0, 80.0], [0.0, 950.0, 80.0], [-950.0, 0.0, 80.0], [0.0, -950.0, 80.0]]
     base_monuments_mm = [[2800.0, 1600.0, 0.0], [-2800.0, 1600.0, 0.0], [0.0, -3200.0, 0.0]]
-    [tracker.driver]                   # drivers.tracker_emscon.EmsconConfig's timeouts and retries
+    [tracker.driver]                   # drivers.tracker.emscon.EmsconConfig's timeouts and retries
     move_timeout_s = 30.0
-    [tracker.search]                   # drivers.tracker_pose.TrackerPoseConfig: ATR search radius, registrations
+    [tracker.search]                   # drivers.tracker.pose.TrackerPoseConfig: ATR search radius, registrations
     max_radius_mm = 100.0
 
 ``platform_targets_mm`` are the SMR nests' reflector centres in the platform frame (at least 3, 4 recommended: one
@@ -39,10 +39,10 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from drivers.cmm_types import as_transform
-from drivers.tracker_base import Environment
-from drivers.tracker_emscon import EmsconConfig
-from drivers.tracker_pose import TrackerPoseConfig
+from drivers.cmm.types import as_transform
+from drivers.tracker.base import Environment
+from drivers.tracker.emscon import EmsconConfig
+from drivers.tracker.pose import TrackerPoseConfig
 from hilcal.acceptance.tracker_mpe import pose_sigma, tracker_origin_mm, tracker_pose_covariance
 from hilcal.protocols.emscon import DEFAULT_PORT
 from hilcal.robot import Robot
@@ -108,7 +108,7 @@ def _layout(v: Any, what: str) -> list[tuple[float, float, float]]:
 
 
 class TrackerDriver(EmsconConfig):
-    """``[tracker.driver]``: the driver's timeouts and retries (``drivers.tracker_emscon.EmsconConfig``); the address
+    """``[tracker.driver]``: the driver's timeouts and retries (``drivers.tracker.emscon.EmsconConfig``); the address
     is the section's own ``host`` and ``port``."""
 
     host: str = Field(default="", exclude=True)

@@ -108,7 +108,7 @@ def test_the_graph_sees_the_imports_it_must_see() -> None:
     assert ("procedures.runner", "procedures.engine") in found
     assert ("procedures.cli.operator", "procedures.runner") in found  # imported inside `run`
     assert ("benchmarks.bench_cmm", "benchmarks._docs") in found
-    assert ("drivers.controller_can", "hilcal.protocols") in found
+    assert ("drivers.controller.hilcal_can", "hilcal.protocols") in found
     assert len(MODULES) > 60
 
 

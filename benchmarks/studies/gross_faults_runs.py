@@ -190,7 +190,7 @@ def _journal(run_dir: Path) -> tuple[str | None, dict[str, int], list[dict[str, 
 
 
 def probing(details: list[dict[str, Any]]) -> dict[str, Any]:
-    """The CMM's work per measured pose from the journal rows' detail (drivers/cmm_probing.py writes `touches`,
+    """The CMM's work per measured pose from the journal rows' detail (drivers/cmm/probing.py writes `touches`,
     `searched_spheres`, `search_touches` and `largest_search_offset_mm` with every measured pose): the touches per
     pose, the spheres searched for, the touches of those searches and the largest offset a search found a sphere at,
     over the rows that carry them (None when none does)."""

@@ -212,7 +212,7 @@ def _method() -> list[str]:
         "aligned worse than it states) counts in every pose's share, and a run that skipped poses out of reach has "
         "fewer rows and less time.",
         "- **touches per pose, spheres searched for, largest search offset:** from the `detail_json` the run "
-        "journals with every measured pose (drivers/cmm_probing.py): `touches` (every touch of the pose's six "
+        "journals with every measured pose (drivers/cmm/probing.py): `touches` (every touch of the pose's six "
         "spheres, searches and re-probes included) averaged over the measured rows; `searched_spheres` summed over "
         "them (the spheres the CMM searched for because its prediction was not good to 0.4 of the sphere's radius "
         "or a pattern did not find the sphere); `largest_search_offset_mm`, the farthest from its prediction a "

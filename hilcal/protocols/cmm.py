@@ -1,6 +1,6 @@
 """The CMM wire protocol, modelled on I++ DME: declarative constants only (names, codes, grammar).
 
-Both the driver (``drivers.cmm_serial``) and the simulator (``sim_devices.cmm.server``) read these
+Both the driver (``drivers.cmm.serial``) and the simulator (``sim_devices.cmm.server``) read these
 tables, but each side has its own parser and formatter, so the simulator cannot agree with the driver
 merely by sharing its code. The protocol is described in ``docs/protocols.md (CMM section)``.
 

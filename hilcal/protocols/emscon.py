@@ -1,5 +1,5 @@
 """Leica emScon (the AT4xx tracker programming interface): packets, codes and framing, shared by the tracker driver
-(``drivers.tracker_emscon``) and the simulated tracker (``sim_devices.tracker``).
+(``drivers.tracker.emscon``) and the simulated tracker (``sim_devices.tracker``).
 
 The packet layouts are not written here: they come from ``CESAPI.packet`` (the MIT-licensed ``cesapi`` package,
 generated from Leica's ``ES_C_API_Def.h``, the AT4xx extract of emScon TPI 3.6). This module is the only one of

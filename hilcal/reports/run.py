@@ -81,7 +81,7 @@ class RunReport:
     adaptive: dict | None = None
     """``hilcal.reports.adaptive.adaptive_section``: an adaptive run's stop reason, prediction and verification."""
     stations: dict | None = None
-    """``drivers.tracker_station.stations_summary``: a laser tracker's stations and where it was set up again."""
+    """``drivers.tracker.station.stations_summary``: a laser tracker's stations and where it was set up again."""
 
     def __post_init__(self) -> None:
         if self.identifications and self.chosen not in self.identifications:

@@ -160,7 +160,7 @@ def _print_prompt_detail(prompt) -> None:
 
 
 def _params_client(station: Path):
-    from drivers.controller_modbus import ControllerParams
+    from drivers.controller.modbus import ControllerParams
     from procedures.station import StationConfigError, load_station
 
     try:
@@ -210,7 +210,7 @@ def upload(
     operator: Annotated[str | None, typer.Option(help="name recorded with the upload")] = None,
 ) -> None:
     """Stand-alone controller parameter upload: validate, show the diff, confirm, upload, read back, record."""
-    from drivers.controller_modbus import ParamsError
+    from drivers.controller.modbus import ParamsError
     from procedures.records import ParameterFileError, UploadDeclined, format_diff, upload_parameter_file
 
     identity = _identity(station)
@@ -241,7 +241,7 @@ def rollback(
     operator: Annotated[str | None, typer.Option(help="name recorded with the rollback")] = None,
 ) -> None:
     """Restore the controller's previous parameter set (its backup bank), and record it."""
-    from drivers.controller_modbus import ParamsError
+    from drivers.controller.modbus import ParamsError
     from procedures.records import rollback_controller
 
     identity = _identity(station)

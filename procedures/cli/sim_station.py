@@ -14,7 +14,7 @@ import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 
-from drivers.tracker_emscon import EmsconConfig
+from drivers.tracker.emscon import EmsconConfig
 from procedures.runner import SimulatorStartError
 from procedures.signoff import AcceptanceSection
 from procedures.station import BUILT_IN_ROBOT, StationConfig, station_from_channels

@@ -24,7 +24,7 @@ from pydantic import ValidationError
 from sqlalchemy.engine import Connection
 from sqlalchemy.exc import DBAPIError, IntegrityError
 
-from drivers.controller_modbus import ParameterSet, ParameterValidationError, UploadRecord
+from drivers.controller.modbus import ParameterSet, ParameterValidationError, UploadRecord
 from hilcal.drift import Calibration
 from procedures.records.database import (
     WRITE,

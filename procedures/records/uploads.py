@@ -12,7 +12,7 @@ from typing import Any, Literal
 
 from pydantic import ValidationError
 
-from drivers.controller_modbus import (
+from drivers.controller.modbus import (
     CompensationBlock,
     ControllerParams,
     ParameterSet,

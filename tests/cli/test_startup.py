@@ -67,7 +67,7 @@ def test_a_run_loads_no_plotting_or_statistics_before_the_machine_moves():
             "print(json.dumps(sorted(sys.modules)))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     modules = set(json.loads(done.stdout))
-    assert "procedures.engine" in modules and "drivers.controller_can" in modules  # the control: it did load
+    assert "procedures.engine" in modules and "drivers.controller.hilcal_can" in modules  # the control: it did load
     assert not {m for m in modules if m == "matplotlib" or m.startswith(("scipy.stats", "matplotlib."))}
 
 

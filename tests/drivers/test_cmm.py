@@ -19,7 +19,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from structlog.testing import capture_logs
 
-from drivers.cmm_base import (
+from drivers.cmm.base import (
     CmmError,
     CmmProtocolError,
     CmmTimeout,
@@ -28,7 +28,7 @@ from drivers.cmm_base import (
     ProbingConfig,
     SphereMeasurementError,
 )
-from drivers.cmm_serial import SerialCmm, SerialCmmConfig
+from drivers.cmm.serial import SerialCmm, SerialCmmConfig
 from hilcal.robot import Robot, default_robot
 from sim_devices.cmm.config import CmmServerConfig, Fault
 from sim_devices.cmm.server import CmmServerHandle, start_cmm_server

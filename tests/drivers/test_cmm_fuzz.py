@@ -17,8 +17,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.cmm_base import CmmDriverError
-from drivers.cmm_serial import (
+from drivers.cmm.base import CmmDriverError
+from drivers.cmm.serial import (
     GarbageLine,
     MalformedResponse,
     Response,

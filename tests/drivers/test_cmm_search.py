@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.cmm_serial import SerialCmm, SerialCmmConfig
+from drivers.cmm.serial import SerialCmm, SerialCmmConfig
 from hilcal.acquisition.spheres import park_height_mm
 from hilcal.robot import default_robot
 from sim_devices.cmm.config import CmmServerConfig

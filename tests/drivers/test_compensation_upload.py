@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from pymodbus.client import ModbusTcpClient
 
-from drivers.controller_modbus import (
+from drivers.controller.modbus import (
     CapabilityError,
     CompensationBlock,
     ControllerParams,

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import serial
 
-from drivers.controller_base import (
+from drivers.controller.base import (
     CommandRefused,
     CommandTimeout,
     ControllerError,
@@ -28,7 +28,7 @@ from drivers.controller_base import (
     EStopActive,
     LimitViolation,
 )
-from drivers.controller_can import ControllerCan
+from drivers.controller.hilcal_can import ControllerCan
 from hilcal.protocols.controller_states import Command, FaultCode
 from hilcal.robot import Robot
 from sim_devices.controller.can_bus_server import CanBusServer
@@ -503,7 +503,7 @@ def test_python_can_slcan_version_and_serial_queries(robot: Robot, rig: Simulate
 
 
 def test_start_controller_servers_for_the_launcher(robot: Robot, rig: SimulatedRig) -> None:
-    from drivers.controller_modbus import ControllerParams
+    from drivers.controller.modbus import ControllerParams
 
     with start_controller_servers(robot, rig, ControllerSimConfig(time_scale=500.0, modbus_rtu=True)) as servers:
         with ControllerCan({"interface": "slcan", "channel": servers.slcan_path, "sleep_after_open": 0}, robot,

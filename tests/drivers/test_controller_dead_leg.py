@@ -14,8 +14,8 @@ from contextlib import ExitStack
 import numpy as np
 import pytest
 
-from drivers.controller_base import ControllerFault, MotionTimeout
-from drivers.controller_can import ControllerCan
+from drivers.controller.base import ControllerFault, MotionTimeout
+from drivers.controller.hilcal_can import ControllerCan
 from hilcal.protocols.controller_states import ControllerState, FaultCode
 from hilcal.robot import Robot
 from sim_devices.controller.can_peer import ControllerCanPeer

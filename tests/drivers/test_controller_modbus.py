@@ -18,7 +18,7 @@ import pytest
 import serial
 from pymodbus.client import ModbusTcpClient
 
-from drivers.controller_modbus import (
+from drivers.controller.modbus import (
     CapabilityError,
     ControllerParams,
     ModbusExceptionResponse,

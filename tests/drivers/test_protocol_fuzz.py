@@ -16,8 +16,8 @@ import serial
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.can_codec import FrameCodec
-from drivers.controller_modbus import ParameterSet, ParameterValidationError
+from drivers.controller.can_codec import FrameCodec
+from drivers.controller.modbus import ParameterSet, ParameterValidationError
 from hilcal.protocols.checksums import can_frame_checksum
 from hilcal.protocols.registers import (
     PARAMETER_REGISTERS,

@@ -11,7 +11,7 @@ import can
 import pytest
 from can.interfaces.slcan import slcanBus
 
-from drivers.slcan_bus import ChunkedSlcanBus, open_bus
+from drivers.controller.slcan_bus import ChunkedSlcanBus, open_bus
 
 
 @pytest.fixture

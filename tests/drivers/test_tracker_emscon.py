@@ -17,7 +17,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from structlog.testing import capture_logs
 
-from drivers.tracker_base import (
+from drivers.tracker.base import (
     Environment,
     MeasurementFailed,
     NoReflectorLocked,
@@ -28,7 +28,7 @@ from drivers.tracker_base import (
     TrackerParameterError,
     TrackerTimeout,
 )
-from drivers.tracker_emscon import EmsconConfig, EmsconTracker
+from drivers.tracker.emscon import EmsconConfig, EmsconTracker
 from hilcal.robot import default_robot
 from sim_devices.tracker.config import Fault, Station, TrackerServerConfig
 from sim_devices.tracker.server import TrackerServerHandle, start_tracker_server

@@ -1,7 +1,7 @@
-"""The laser tracker's pose strategy (``drivers.tracker_pose``) against the simulated tracker over TCP: the pose and the
+"""The laser tracker's pose strategy (``drivers.tracker.pose``) against the simulated tracker over TCP: the pose and the
 refined alignment from the monuments and nests, the ATR search radius from the prediction's bound, a search widened
 after a miss, a target out of sight named, a broken beam measured again, a wrong layout refused; a tracker set up again
-near its place found and counted as a new station (``drivers.tracker_station``), a still one staying one, one moved
+near its place found and counted as a new station (``drivers.tracker.station``), a still one staying one, one moved
 beyond the searches stopping with what to do.
 
 The truth is written here: a station placed by this test, four nests on a platform at a pose of this test, four
@@ -17,10 +17,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from drivers.instrument import TrackerMoved, TrackerPoseInstrument
-from drivers.tracker_base import Environment
-from drivers.tracker_emscon import EmsconConfig, EmsconTracker
-from drivers.tracker_pose import TargetNotFound, TrackerPoseConfig, TrackerPoseError, TrackerPoser
-from drivers.tracker_station import StationLog
+from drivers.tracker.base import Environment
+from drivers.tracker.emscon import EmsconConfig, EmsconTracker
+from drivers.tracker.pose import TargetNotFound, TrackerPoseConfig, TrackerPoseError, TrackerPoser
+from drivers.tracker.station import StationLog
 from sim_devices.tracker.config import Station, TrackerServerConfig
 from sim_devices.tracker.server import TrackerServerHandle, start_tracker_server
 

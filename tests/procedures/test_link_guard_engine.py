@@ -11,8 +11,8 @@ import threading
 import numpy as np
 import pytest
 
-from drivers.cmm_serial import SerialCmmConfig
-from drivers.controller_modbus import ParameterSet
+from drivers.cmm.serial import SerialCmmConfig
+from drivers.controller.modbus import ParameterSet
 from hilcal.kinematics import Geometry, inverse_kinematics
 from hilcal.protocols.controller_states import FaultCode
 from procedures import messages as m

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.controller_modbus import ControllerParams, ModbusTransportError, NotDisabled, UploadRefused
+from drivers.controller.modbus import ControllerParams, ModbusTransportError, NotDisabled, UploadRefused
 from hilcal.protocols.controller_states import Command
 from hilcal.robot import Robot
 from procedures.records import (

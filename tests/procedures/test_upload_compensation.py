@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.controller_modbus import CompensationBlock, ModbusTransportError, ParameterSet
+from drivers.controller.modbus import CompensationBlock, ModbusTransportError, ParameterSet
 from procedures import messages as m
 from procedures.engine import Engine, RunInterrupted
 from procedures.journal import Journal

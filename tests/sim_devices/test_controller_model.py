@@ -14,7 +14,7 @@ import cantools
 import numpy as np
 import pytest
 
-from drivers.can_codec import FrameCodec
+from drivers.controller.can_codec import FrameCodec
 from hilcal.protocols import controller_dbc_text
 from hilcal.protocols.checksums import crc8_sae_j1850, crc16_modbus, crc32_ieee
 from hilcal.protocols.controller_states import Command, ControllerState, FaultCode, RefusalReason
@@ -106,8 +106,9 @@ def _imports(path: str) -> set[str]:
 
 def test_driver_and_simulator_share_only_protocol_data() -> None:
     root = Path(__file__).resolve().parents[2]
-    for name in ("controller_base", "controller_can", "controller_modbus"):
-        assert not any(m.startswith("sim_devices") for m in _imports(str(root / "drivers" / f"{name}.py"))), name
+    for name in ("base", "hilcal_can", "modbus"):
+        imports = _imports(str(root / "drivers" / "controller" / f"{name}.py"))
+        assert not any(m.startswith("sim_devices") for m in imports), name
     for name in ("state_machine", "servers", "can_peer", "can_faults", "slcan_protocol", "slcan_server",
                  "can_bus_server", "modbus_frames", "modbus_faults", "modbus_protocol", "modbus_server", "link_gaps"):
         imports = _imports(str(root / "sim_devices" / "controller" / f"{name}.py"))

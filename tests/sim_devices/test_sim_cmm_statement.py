@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.cmm_serial import SerialCmm, SerialCmmConfig
+from drivers.cmm.serial import SerialCmm, SerialCmmConfig
 from hilcal.robot import default_robot
 from procedures.station import station_from_channels
 from sim_devices.cmm.server import start_cmm_server

@@ -16,8 +16,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 from structlog.testing import capture_logs
 
-from drivers.cmm_base import CmmError
-from drivers.cmm_serial import SerialCmm, SerialCmmConfig
+from drivers.cmm.base import CmmError
+from drivers.cmm.serial import SerialCmm, SerialCmmConfig
 from hilcal.robot import default_robot
 from sim_devices.cmm.config import CmmServerConfig
 from sim_devices.cmm.server import CmmServerHandle, start_cmm_server

@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivers.cmm_serial import SerialCmm
-from drivers.controller_can import ControllerCan
-from drivers.controller_modbus import ControllerParams
+from drivers.cmm.serial import SerialCmm
+from drivers.controller.hilcal_can import ControllerCan
+from drivers.controller.modbus import ControllerParams
 from hilcal.kinematics import Geometry, inverse_kinematics
 from hilcal.protocols.controller_states import ControllerState
 from hilcal.robot import default_robot

@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.tracker_base import Environment, ReflectorNotFound, TrackerNotSupported
-from drivers.tracker_emscon import EmsconConfig, EmsconTracker
+from drivers.tracker.base import Environment, ReflectorNotFound, TrackerNotSupported
+from drivers.tracker.emscon import EmsconConfig, EmsconTracker
 from hilcal.protocols import emscon
 from hilcal.robot import default_robot
 from sim_devices.launcher import _describe, spawn_sim_subprocess, stop_sim_subprocess

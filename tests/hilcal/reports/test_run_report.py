@@ -14,7 +14,7 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from drivers.controller_modbus import UploadRecord, WriteRecord
+from drivers.controller.modbus import UploadRecord, WriteRecord
 from hilcal.identification import IdentificationResult, identify
 from hilcal.kinematics import Geometry, inverse_kinematics
 from hilcal.metrics import AccuracySummary

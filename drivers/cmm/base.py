@@ -1,9 +1,9 @@
 """The CMM interface: one small abstract transport API, the probe's tracked position, and the measurements.
 
-Like python-can's ``BusABC``: a transport module (``drivers.cmm_serial``) implements the primitive commands (session,
+Like python-can's ``BusABC``: a transport module (``drivers.cmm.serial``) implements the primitive commands (session,
 homing, GoTo, one touch, the search distance); this class tracks where the probe is and counts its touches, and
-measures spheres and poses with the transport-independent strategy of ``drivers.cmm_probing``. The errors, results
-and settings live in ``drivers.cmm_types`` and are importable from here. All coordinates are in the CMM frame, mm;
+measures spheres and poses with the transport-independent strategy of ``drivers.cmm.probing``. The errors, results
+and settings live in ``drivers.cmm.types`` and are importable from here. All coordinates are in the CMM frame, mm;
 poses are [x, y, z mm, roll, pitch, yaw deg], R = Rz(yaw) Ry(pitch) Rx(roll).
 """
 
@@ -14,8 +14,8 @@ from types import TracebackType
 
 import numpy as np
 
-from drivers.cmm_probing import Prober
-from drivers.cmm_types import (
+from drivers.cmm.probing import Prober
+from drivers.cmm.types import (
     CmmConnectionError,
     CmmDriverError,
     CmmError,
@@ -115,7 +115,7 @@ class CmmInterface(abc.ABC):
             self.search_mm = float(mm)
 
     def goto(self, point_mm: np.ndarray) -> None:
-        """Move the probe in a straight line to a point (the caller keeps the line clear: ``drivers.cmm_probing``)."""
+        """Move the probe in a straight line to a point (the caller keeps the line clear: ``drivers.cmm.probing``)."""
         self.position_mm = None
         self._goto(point_mm)
         self.position_mm = np.asarray(point_mm, dtype=float).copy()
@@ -139,7 +139,7 @@ class CmmInterface(abc.ABC):
     def measure_sphere(self, nominal_centre_mm: np.ndarray, radius_mm: float, up: np.ndarray = (0.0, 0.0, 1.0),
                        bound_mm: float | None = None) -> SphereMeasurement:
         """Find and probe a sphere predicted at ``nominal_centre_mm`` to within ``bound_mm`` (default: the probing
-        settings' ``default_bound_mm``), approaching from the ``up`` side (``drivers.cmm_probing``).
+        settings' ``default_bound_mm``), approaching from the ``up`` side (``drivers.cmm.probing``).
 
         Misses and outliers are recorded, never used, and touched again within ``max_reprobes``; a sphere not where
         predicted is searched for. SphereMeasurementError when too few good points remain, the free-fit radius is
@@ -161,7 +161,8 @@ class CmmInterface(abc.ABC):
         """Measure the base spheres, then the platform spheres, and register both layouts to get the pose.
 
         ``alignment`` is an approximate T_cmm<-base (4x4, or the (6,) pose of the base frame in the CMM frame) known
-        to ``alignment_tolerance`` (mm, deg; default: 10 mm and 0.2 deg, ``cmm_types.DEFAULT_ALIGNMENT_MM/DEG``);
+        to ``alignment_tolerance`` (mm, deg; default: 10 mm and 0.2 deg,
+        ``drivers.cmm.types.DEFAULT_ALIGNMENT_MM/DEG``);
         ``expected_pose``
         (default: the robot's home) predicts the platform spheres with ``pose_cov``, the (6, 6) covariance of its
         [dt (mm); dw (rad)] in base axes (``hilcal.acquisition.model.PosePrediction``; default: ``default_bound_mm``
@@ -169,7 +170,7 @@ class CmmInterface(abc.ABC):
         ``extra`` counts the touches and searches. An alignment not ``registered`` on measured base spheres yet (the
         station's; the default) may be off beyond its tolerance: base-sphere searches then descend from
         ``max_search_mm`` above the prediction. Pass a previous pose's ``refined_alignment`` with ``registered=True``
-        and a tight tolerance (``cmm_probing.REGISTERED_MM/DEG``) to skip that. The probe ends parked above every place
-        a platform sphere can reach.
+        and a tight tolerance (``drivers.cmm.probing.REGISTERED_MM/DEG``) to skip that. The probe ends parked above
+        every place a platform sphere can reach.
         """
         return Prober(self).measure_pose(robot, alignment, expected_pose, pose_cov, alignment_tolerance, registered)

@@ -27,7 +27,7 @@ import serial
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
-from drivers.cmm_base import (
+from drivers.cmm.base import (
     CmmConnectionError,
     CmmError,
     CmmInterface,

@@ -1,4 +1,4 @@
-"""How a laser tracker measures a platform pose, on any transport (``drivers.tracker_base``): the base monuments, then
+"""How a laser tracker measures a platform pose, on any transport (``drivers.tracker.base``): the base monuments, then
 the platform targets, each aimed at its prediction and found by the tracker's ATR search.
 
 Every target comes with a prediction and a bound (``hilcal.acquisition.spheres.BodyBelief``: the station's
@@ -24,8 +24,8 @@ import numpy as np
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
-from drivers.cmm_types import as_transform, transform_from_pose
-from drivers.tracker_base import ReflectorNotFound, TrackerDriverError, TrackerInterface, TrackerPoint
+from drivers.cmm.types import as_transform, transform_from_pose
+from drivers.tracker.base import ReflectorNotFound, TrackerDriverError, TrackerInterface, TrackerPoint
 from hilcal.acquisition.spheres import BodyBelief
 from hilcal.pose_measurement import PoseFit, pose_from_points, rigid_fit
 

@@ -1,6 +1,6 @@
 """What the CMM driver measures and how it fails: errors, probe records, sphere and pose results, the probing
-settings, and the frame helpers; shared by the interface (``drivers.cmm_base``) and the probing strategy
-(``drivers.cmm_probing``). All coordinates are in the CMM frame, mm; poses are [x, y, z mm, roll, pitch, yaw deg],
+settings, and the frame helpers; shared by the interface (``drivers.cmm.base``) and the probing strategy
+(``drivers.cmm.probing``). All coordinates are in the CMM frame, mm; poses are [x, y, z mm, roll, pitch, yaw deg],
 R = Rz(yaw) Ry(pitch) Rx(roll).
 """
 

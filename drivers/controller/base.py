@@ -1,6 +1,6 @@
 """Abstract servo-controller interface and its typed errors, in the style of python-can's ``can/bus.py``.
 
-One module per transport implements ``ControllerInterface`` (``controller_can.py``: CAN through any
+One module per transport implements ``ControllerInterface`` (``hilcal_can.py``: CAN through any
 python-can interface). Lengths are *controller lengths* in mm: stroke + the controller's leg offset l0.
 """
 

@@ -5,7 +5,7 @@ The packets are ``hilcal.protocols.emscon``'s (CESAPI's layouts from Leica's ``E
 
 * Before a command is sent, whatever the tracker sent since is read and dropped (logged).
 * The answer is the command packet with the same command code; a status other than ``AllOK`` is a typed
-  ``TrackerError`` (``drivers.tracker_base.tracker_error``). ``StartMeasurement`` also waits for its
+  ``TrackerError`` (``drivers.tracker.base.tracker_error``). ``StartMeasurement`` also waits for its
   ``SingleMeasResultT``. An ``ErrorResponseT`` for the pending command is a typed error too (``unsolicited``); one for
   another command is logged. Status-change notices and reflector positions are logged and passed over; packets of
   data types or command codes the AT4xx definitions lack (a newer server's) are skipped and logged, at most
@@ -33,7 +33,7 @@ import numpy as np
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
-from drivers.tracker_base import (
+from drivers.tracker.base import (
     Environment,
     Reflector,
     Refraction,

@@ -1,6 +1,6 @@
 """The laser tracker interface: one small abstract API, what it measures, and how it fails.
 
-A transport module (``drivers.tracker_emscon``: Leica's emScon over TCP) implements the primitives: initialise, the
+A transport module (``drivers.tracker.emscon``: Leica's emScon over TCP) implements the primitives: initialise, the
 units, the environment and refraction, the reflector, the ATR search parameters, positioning (``go_position``,
 ``find_reflector``) and one single-point measurement. This class adds ``setup`` and ``measure_point`` (go to an
 approximate position, let the ATR find the reflector, measure; a measurement the beam broke is made again).

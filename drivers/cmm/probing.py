@@ -1,4 +1,4 @@
-"""How a CMM finds and measures tooling spheres and a platform pose, on any transport (``drivers.cmm_base``).
+"""How a CMM finds and measures tooling spheres and a platform pose, on any transport (``drivers.cmm.base``).
 
 Every sphere comes with a prediction and a bound (how far off it may be, ``hilcal.acquisition.spheres``). A sphere
 predicted to within a fraction of its radius is probed at once: the touches start beyond where its surface could be
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import structlog
 
-from drivers.cmm_types import (
+from drivers.cmm.types import (
     DEFAULT_ALIGNMENT_DEG,
     DEFAULT_ALIGNMENT_MM,
     PoseMeasurement,

@@ -23,8 +23,7 @@ import can
 import numpy as np
 import structlog
 
-from drivers.can_codec import ChecksumError, DecodedFrame, FrameCodec, FrameStats, UnknownFrame
-from drivers.controller_base import (
+from drivers.controller.base import (
     CommandRefused,
     CommandTimeout,
     ControllerError,
@@ -41,7 +40,8 @@ from drivers.controller_base import (
     legs_not_following,
     not_following_text,
 )
-from drivers.slcan_bus import open_bus
+from drivers.controller.can_codec import ChecksumError, DecodedFrame, FrameCodec, FrameStats, UnknownFrame
+from drivers.controller.slcan_bus import open_bus
 from hilcal.protocols.checksums import CAN_COUNTER_MODULO
 from hilcal.protocols.controller_states import (
     Command,
@@ -97,7 +97,7 @@ def _fault(value: int) -> FaultCode:
 
 class ControllerCan(ControllerInterface):
     """The servo controller over CAN; ``bus_config`` goes to ``can.Bus(**bus_config)`` (slcan: see below and
-    ``drivers.slcan_bus``, which reads the adapter's port in chunks).
+    ``drivers.controller.slcan_bus``, which reads the adapter's port in chunks).
 
     Example: ``ControllerCan({"interface": "slcan", "channel": "/dev/ttyACM0", "bitrate": 500000}, robot)``. For slcan
     without a ``timeout`` the driver adds SLCAN_READ_TIMEOUT_S.

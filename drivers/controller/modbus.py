@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 import structlog
 
-from drivers.parameter_sets import (
+from drivers.controller.parameter_sets import (
     CapabilityError,
     CompensationBlock,
     Identity,

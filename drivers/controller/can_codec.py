@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import can
 import cantools
 
-from drivers.controller_base import FrameError
+from drivers.controller.base import FrameError
 from hilcal.protocols import controller_dbc_text
 from hilcal.protocols.checksums import (
     CAN_CHECKSUM_BYTE,
