@@ -9,7 +9,8 @@ python-can, cantools or pymodbus.
 import lazy_loader
 
 __getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submod_attrs={
-    "base": ["ControllerError", "ControllerFault", "ControllerInterface", "ControllerLost", "Feedback"],
+    "base": ["ControllerError", "ControllerFault", "ControllerInterface", "ControllerLost", "Feedback",
+             "ParameterInterface"],
     "hilcal_can": ["ControllerCan"],
     "modbus": ["ControllerParams"],
     "parameter_sets": ["CompensationBlock", "Identity", "ParameterSet", "UploadRecord", "WriteRecord"],

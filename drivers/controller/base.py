@@ -1,7 +1,9 @@
 """Abstract servo-controller interface and its typed errors, in the style of python-can's ``can/bus.py``.
 
-One module per transport implements ``ControllerInterface`` (``hilcal_can.py``: CAN through any
-python-can interface). Lengths are *controller lengths* in mm: stroke + the controller's leg offset l0.
+Two roles, each a small interface: ``ControllerInterface`` moves the legs (``hilcal_can.py``: hilcal's own CAN message
+set through any python-can interface) and ``ParameterInterface`` reads and writes the geometry and compensation the
+controller holds, as a transaction (``modbus.py``). One device may play both roles. Lengths are *controller lengths*
+in mm: stroke + the controller's leg offset l0.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from drivers.controller.parameter_sets import CompensationBlock, Identity, ParameterSet, UploadRecord
 from hilcal.protocols.controller_states import ControllerState, FaultCode, RefusalReason
 from hilcal.robot import Robot
 
@@ -184,4 +187,63 @@ class ControllerInterface(ABC):
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
+        self.close()
+
+
+class ParameterInterface(ABC):
+    """A controller's parameter interface: the geometry and compensation it holds, changed only as a transaction.
+
+    Every operation returns an ``UploadRecord`` (``drivers.controller.parameter_sets``) of each write, the hashes of
+    the sets involved, timestamps and read-back results, or raises a ``ParamsError`` carrying it as ``err.record``;
+    a failed write puts the old values back. ``endpoint`` and ``device_id`` name the device in records and messages.
+    """
+
+    endpoint: str
+    device_id: int
+
+    @abstractmethod
+    def read_identity(self) -> Identity:
+        """Who the device is and what it can take (IdentityError if it is not a compatible controller)."""
+
+    @abstractmethod
+    def read_state(self) -> ControllerState:
+        """The controller's state (parameters change only while DISABLED)."""
+
+    @abstractmethod
+    def read_live(self) -> ParameterSet:
+        """The geometry in use."""
+
+    @abstractmethod
+    def read_live_compensation(self) -> CompensationBlock:
+        """The compensation block in use (CapabilityError where the device has none)."""
+
+    @abstractmethod
+    def read_leg_forces_kn(self) -> np.ndarray:
+        """Each leg's axial compression as the controller reads it (kN)."""
+
+    @abstractmethod
+    def read_temperature_c(self) -> float:
+        """The leg temperature as the controller reads it (°C)."""
+
+    @abstractmethod
+    def upload(self, params: ParameterSet | Sequence[float] | np.ndarray, *, save: bool = False,
+               compensation: CompensationBlock | None = None) -> UploadRecord:
+        """Write, read back and commit a geometry (and a compensation block when given); save=True also saves."""
+
+    @abstractmethod
+    def save(self) -> UploadRecord:
+        """Copy the live set to non-volatile memory and verify it."""
+
+    @abstractmethod
+    def rollback(self) -> UploadRecord:
+        """Put the set in use before the last commit back."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release the transport (idempotent)."""
+
+    def __enter__(self) -> ParameterInterface:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
         self.close()

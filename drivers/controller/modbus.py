@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 import structlog
 
+from drivers.controller.base import ParameterInterface
 from drivers.controller.parameter_sets import (
     CapabilityError,
     CompensationBlock,
@@ -94,7 +95,7 @@ def _sha(words: Sequence[int]) -> str:
     return hashlib.sha256(words_to_bytes(words)).hexdigest()
 
 
-class ControllerParams:
+class ControllerParams(ParameterInterface):
     """The controller's Modbus parameter interface; TCP (``host``/``port``) or RTU (``serial_port``)."""
 
     def __init__(
@@ -131,12 +132,6 @@ class ControllerParams:
 
     def close(self) -> None:
         self._client.close()
-
-    def __enter__(self) -> ControllerParams:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     # ------------------------------------------------------------------ requests
 
