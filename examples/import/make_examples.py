@@ -94,7 +94,7 @@ LOGGER_SECONDS_PER_POSE = 60.0
 def logger(folder: Path) -> Example:
     """Electric hexapod: ball-screw lead errors, a little backlash, re-homing shifts two legs' zeros on day 2."""
     src = HERE / "logger"
-    _, text = geometry_robot_toml(load_geometry(src / "geometry.toml"), "geometry.toml")
+    _, text, _ = geometry_robot_toml(load_geometry(src / "geometry.toml"), "geometry.toml")
     (folder / "robot.toml").write_text(text, encoding="utf-8")
     robot = load_robot(folder / "robot.toml")
     rng = np.random.default_rng([SEED, 1])

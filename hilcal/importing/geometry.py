@@ -3,12 +3,15 @@
 Hexapod datasheets give the joint circle radii and angles (or the angle between the two joints of a pair), the
 leg length range or stroke, the home height and the travel range about home. ``robot_from_geometry`` turns these
 into the robot file that ``hilcal.robot.load_robot`` reads (validated by the same RobotSpec), and
-``check_geometry`` says how much of the travel box the legs can reach.
+``check_geometry`` says how much of the travel box the legs can reach. What a newcomer may not know has a stated
+default: the travel (the box about home whose corners the legs reach) and the moving mass (an aluminium top plate
+sized from the platform's joint circle); ``GeometryDefaults`` says which were used and what they came to.
 """
 
 from __future__ import annotations
 
 import json
+import textwrap
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -109,15 +112,15 @@ class TravelSpec(_Strict):
 
 
 class GeometrySpec(_Strict):
-    """The whole geometry file."""
+    """The whole geometry file; ``travel`` and ``mass`` may be left out (stated defaults, ``GeometryDefaults``)."""
 
     name: str = "robot"
     base: JointCircle
     platform: JointCircle
     legs: LegGeometry
     home: HomeGeometry
-    travel: TravelSpec
-    mass: MassSpec
+    travel: TravelSpec | None = None
+    mass: MassSpec | None = None
     actuators: ActuatorSpec | None = None
     cmm: CmmSpec | None = None
 
@@ -147,6 +150,65 @@ def _home_height(spec: GeometrySpec, a: np.ndarray, b: np.ndarray) -> float:
     return float(np.mean(z))
 
 
+PLATE_RADIUS_FACTOR, PLATE_THICKNESS_MM, ALUMINIUM_KG_M3 = 1.2, 20.0, 2700.0
+"""The default moving mass: an aluminium top plate 1.2 x the platform's joint radius, 20 mm thick, no payload."""
+TRAVEL_FRACTIONS = tuple(round(1.0 - 0.05 * k, 2) for k in range(19))
+"""The default travel: the largest of these fractions of each axis' own reach whose box has all 64 corners reachable."""
+REACH_SEARCH = (1000.0, 60.0)
+"""Single-axis reach is searched up to this many mm (x, y, z) and degrees (roll, pitch, yaw) from home."""
+
+
+@dataclass(frozen=True)
+class GeometryDefaults:
+    """What the geometry file left out and what hilcal took instead, in words (empty: nothing)."""
+
+    notes: tuple[str, ...] = ()
+
+
+def default_mass(spec: GeometrySpec) -> MassSpec:
+    """An aluminium top plate sized from the platform's joint circle (``PLATE_RADIUS_FACTOR``), no payload."""
+    r_m = PLATE_RADIUS_FACTOR * spec.platform.radius_mm / 1000.0
+    kg = ALUMINIUM_KG_M3 * np.pi * r_m**2 * PLATE_THICKNESS_MM / 1000.0
+    return MassSpec(moving_mass_kg=round(float(kg), 2), com_mm=[0.0, 0.0, spec.platform.z_mm])
+
+
+def _reach(robot: Robot, home: np.ndarray, axis: int) -> float:
+    """How far from home the legs reach along one pose axis alone (both directions; the smaller), by bisection."""
+    limit = REACH_SEARCH[0] if axis < 3 else REACH_SEARCH[1]
+    reach = limit
+    for sign in (1.0, -1.0):
+        lo, hi = 0.0, limit
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            pose = home.copy()
+            pose[axis] += sign * mid
+            lo, hi = (mid, hi) if feasible(robot, pose[None, :])[0] else (lo, mid)
+        reach = min(reach, lo)
+    return reach
+
+
+def default_travel(data: dict[str, Any], home: np.ndarray, source: str) -> tuple[list[list[float]], str]:
+    """The travel box about home when the file gives none: each axis a fraction of its own reach, the fraction the
+    largest of ``TRAVEL_FRACTIONS`` whose 64 corners the legs reach; the bounds and a sentence saying so."""
+    wide = {**data, "workspace": {axis: [float(home[k] - (REACH_SEARCH[0] if k < 3 else REACH_SEARCH[1])),
+                                         float(home[k] + (REACH_SEARCH[0] if k < 3 else REACH_SEARCH[1]))]
+                                  for k, axis in enumerate(POSE_AXES)}}
+    robot = robot_from_dict(wide, source)
+    reach = np.array([_reach(robot, home, k) for k in range(6)])
+    for fraction in TRAVEL_FRACTIONS:
+        half = np.round(fraction * reach, 1)
+        corners = home + np.array(np.meshgrid(*[[-h, h] for h in half], indexing="ij")).reshape(6, -1).T
+        if np.all(feasible(robot, corners)) and np.all(half > 0):
+            break
+    else:
+        raise ValueError("the legs reach no travel box about home: check the legs' range and the home height")
+    said = ", ".join(f"{axis.split('_')[0]} ±{h:g} {'mm' if k < 3 else 'deg'}"
+                     for k, (axis, h) in enumerate(zip(POSE_AXES, half, strict=True)))
+    note = (f"travel: not in the geometry file; took {said}: {fraction:.0%} of each axis' own reach from home, the "
+            "largest share whose 64 box corners the legs reach (give [travel] from your datasheet)")
+    return [[float(home[k] - half[k]), float(home[k] + half[k])] for k in range(6)], note
+
+
 def _default_cmm(spec: GeometrySpec) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for body, offset in (("platform", 0.0), ("base", 60.0)):
@@ -158,32 +220,49 @@ def _default_cmm(spec: GeometrySpec) -> dict[str, Any]:
     return out
 
 
-def robot_dict_from_geometry(spec: GeometrySpec) -> dict[str, Any]:
-    """The robot file's content (a dict that ``hilcal.robot.robot_from_dict`` validates)."""
+def robot_dict_from_geometry(spec: GeometrySpec, source: str = "<geometry>") -> tuple[dict[str, Any],
+                                                                                      GeometryDefaults]:
+    """The robot file's content (a dict that ``hilcal.robot.robot_from_dict`` validates) and the defaults taken."""
     a, b = spec.platform.joints("platform"), spec.base.joints("base")
     z = _home_height(spec, a, b)
     home = np.array([0.0, 0.0, z, 0.0, 0.0, 0.0])
     l0 = spec.legs.zero_mm or spec.legs.min_mm
+    notes: list[str] = []
+    mass = spec.mass
+    if mass is None:
+        mass = default_mass(spec)
+        notes.append(f"mass: not in the geometry file; took {mass.moving_mass_kg:g} kg at the platform frame's "
+                     f"origin, an aluminium top plate {PLATE_RADIUS_FACTOR:g} x the platform's joint radius and "
+                     f"{PLATE_THICKNESS_MM:g} mm thick, no payload (give [mass] with your payload: the legs' loads "
+                     "and the compliance the diagnosis looks for depend on it)")
     data: dict[str, Any] = {
         "name": spec.name,
         "home": dict(zip(POSE_AXES, (float(v) for v in home), strict=True)),
-        "workspace": dict(zip(POSE_AXES, spec.travel.bounds(home), strict=True)),
         "leg_limits": {"min_mm": spec.legs.min_mm, "max_mm": spec.legs.min_mm + spec.legs.stroke_mm},
     }
     if spec.actuators is not None:
         data["actuators"] = spec.actuators.model_dump(exclude_none=True)
-    data["mass"] = spec.mass.model_dump()
+    data["mass"] = mass.model_dump()
     data["cmm"] = spec.cmm.model_dump(exclude_none=True) if spec.cmm is not None else _default_cmm(spec)
     data["legs"] = [{"a_mm": [round(float(v), 6) for v in a[k]], "b_mm": [round(float(v), 6) for v in b[k]],
                      "l0_mm": l0} for k in range(6)]
-    return data
+    if spec.travel is not None:
+        bounds = spec.travel.bounds(home)
+    else:
+        bounds, note = default_travel(data, home, source)
+        notes.append(note)
+    data = {"name": data.pop("name"), "home": data.pop("home"),
+            "workspace": dict(zip(POSE_AXES, bounds, strict=True)), **data}
+    return data, GeometryDefaults(tuple(notes))
 
 
-def robot_from_geometry(spec: GeometrySpec, source: str = "<geometry>") -> tuple[Robot, dict[str, Any]]:
-    """The validated robot and its file content; an ImportFileError if the numbers do not make a valid robot."""
+def robot_from_geometry(spec: GeometrySpec, source: str = "<geometry>") -> tuple[Robot, dict[str, Any],
+                                                                                   GeometryDefaults]:
+    """The validated robot, its file content and the defaults taken; an ImportFileError if the numbers do not make
+    a valid robot."""
     try:
-        data = robot_dict_from_geometry(spec)
-        return robot_from_dict(data, source), data
+        data, defaults = robot_dict_from_geometry(spec, source)
+        return robot_from_dict(data, source), data, defaults
     except (ValueError, RobotFileError) as err:
         raise ImportFileError(source, f"these numbers do not make a valid robot: {err}") from None
 
@@ -246,10 +325,12 @@ def robot_toml(data: dict[str, Any], header: str = "", comments: dict[str, str] 
     return "\n".join(lines) + "\n"
 
 
-def geometry_robot_toml(spec: GeometrySpec, source: str) -> tuple[Robot, str]:
-    """The robot and the text of its robot file, with where it came from in its header."""
-    robot, data = robot_from_geometry(spec, source)
+def geometry_robot_toml(spec: GeometrySpec, source: str) -> tuple[Robot, str, GeometryDefaults]:
+    """The robot, the text of its robot file (where it came from and the defaults taken in its header) and the
+    defaults."""
+    robot, data, defaults = robot_from_geometry(spec, source)
     header = (f"Robot file made by `hilcal robot-from-geometry {Path(source).name}` from the machine's documented\n"
-              "geometry. Units: mm, degrees, kg. a_mm in the platform frame, b_mm in the base frame.")
+              "geometry. Units: mm, degrees, kg. a_mm in the platform frame, b_mm in the base frame."
+              + "".join("\n" + textwrap.fill(f"Default {note}.", 110) for note in defaults.notes))
     comments = {} if spec.cmm is not None else {"cmm": DEFAULT_CMM_COMMENT}
-    return robot, robot_toml(data, header, comments)
+    return robot, robot_toml(data, header, comments), defaults

@@ -14,6 +14,8 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+from hilcal.reports.upload import upload_facts
+
 _CSS = """@page{size:A4;margin:13mm 13mm 15mm 13mm}
 *{box-sizing:border-box}body{font-family:"DejaVu Sans",Arial,sans-serif;font-size:8.6pt;color:#111;margin:0 auto;
 max-width:186mm;line-height:1.3;-webkit-print-color-adjust:exact;print-color-adjust:exact}
@@ -128,23 +130,15 @@ def _verdict(cert: Mapping[str, Any]) -> str:
 
 def _upload(report: Mapping[str, Any]) -> str:
     upload = report.get("upload") or {}
-    record = upload.get("record") or {}
-    if not record:
+    facts = upload_facts(upload)
+    if facts is None or not upload.get("record"):
         return "<p>No parameter set was uploaded in this run.</p>"
-    save = upload.get("save_record") or {}
-    block = [] if not record.get("compensation_sha256") else [
-        ("compensation block, SHA-256 (controller registers)", f"<code>{_esc(record.get('compensation_sha256'))}</code>"
-         f" – read back after the commit, matches: {_yes(record.get('compensation_readback_match'))}")]
-    return _kv([
-        ("uploaded parameter set, SHA-256 (controller registers)", f"<code>{_esc(record.get('params_sha256'))}</code>"),
-        *block,
-        ("controller's live set read back after the commit", f"<code>{_esc(record.get('live_after_sha256'))}</code>"
-         f" – matches: {_yes(record.get('live_readback_match'))}"),
-        ("staging read back before the commit", f"matches: {_yes(record.get('staging_readback_match'))}"),
-        ("saved to non-volatile memory, read back", f"{_yes(save.get('saved') or record.get('saved'))}, matches: "
-         f"{_yes(save.get('saved_readback_match') or record.get('saved_readback_match'))}"),
-        ("outcome", f"{_esc(upload.get('outcome'))} on {_esc(record.get('endpoint'))} at "
-                    f"{_when(record.get('finished_at'))}")])
+    record = upload["record"]
+    rows = [("uploaded parameter set, SHA-256", f"<code>{_esc(facts.params_sha256)}</code>")]
+    if record.get("compensation_sha256"):
+        rows.append(("compensation block, SHA-256", f"<code>{_esc(record.get('compensation_sha256'))}</code>"))
+    rows.append(("controller", _esc(facts.endpoint)))
+    return _kv(rows) + "".join(f"<p>{_esc(line)}</p>" for line in facts.sentences())
 
 
 def _compensation(report: Mapping[str, Any]) -> str:

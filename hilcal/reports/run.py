@@ -29,6 +29,7 @@ from hilcal.reports.drift import drift_html
 from hilcal.reports.figures import fixed_margins, plain_log_scale, png_base64
 from hilcal.reports.physics import physics_html
 from hilcal.reports.timing import time_html
+from hilcal.reports.upload import upload_facts
 
 INDICATORS = ("max", "range", "mean", "rms")
 INDICATOR_LABELS = {"max": "maximum", "range": "range", "mean": "average", "rms": "RMS"}
@@ -426,26 +427,33 @@ def _parameters_html(r: RunReport) -> str:
 
 
 def _upload_html(r: RunReport) -> str:
-    if r.upload is None:
+    facts = upload_facts(_jsonable(r.upload))
+    if facts is None:
         return "<p>nothing was uploaded to the controller.</p>"
     state = _jsonable(r.upload)
-    # a run's journal state ({sha256, outcome, record, ...}) holds the driver's record; a bare record is one itself
-    u = {**state["record"], "outcome": state.get("outcome")} if state.get("record") else state
-    keys = ("operation", "outcome", "error", "endpoint", "device_id", "started_at", "finished_at", "offsets_only",
-            "params_sha256", "params_crc32", "previous_live_sha256", "previous_live_crc32", "live_after_sha256",
-            "compensation_sha256", "compensation_crc32", "previous_compensation_sha256", "compensation_readback_match",
-            "staged_registers", "staging_readback_match", "live_readback_match", "controller_status", "saved",
-            "saved_readback_match")
-    summary = {k: u.get(k) for k in keys if k in u}
-    writes = u.get("writes") or []
+    record = state.get("record") or state
+    ids = [(label, record.get(key)) for key, label in UPLOAD_IDENTIFIERS if record.get(key)]
+    table = "".join(f"<tr><th>{_esc(label)}</th><td><code>{_esc(value)}</code></td></tr>" for label, value in ids)
+    writes = record.get("writes") or []
     rows = "".join(
         f"<tr><td>{_esc(w.get('function'))}</td><td>0x{int(w.get('address', 0)):04X}</td><td>{_esc(w.get('count'))}"
-        f"</td><td>{_esc(w.get('at'))}</td><td>{_esc(w.get('ok'))}</td><td>{_esc(w.get('error') or '')}</td></tr>"
+        f"</td><td>{_esc(w.get('at'))}</td><td>{'yes' if w.get('ok') else 'NO'}</td><td>{_esc(w.get('error') or '')}"
+        "</td></tr>"
         for w in writes
     )
-    table = (f"<table><tr><th>function</th><th>address</th><th>registers</th><th>time</th><th>ok</th>"
-             f"<th>error</th></tr>{rows}</table>") if writes else "<p>no writes</p>"
-    return f"{_value_html(summary)}<h3>Modbus writes ({len(writes)})</h3>{table}"
+    writes_html = (f"<details><summary>every write to the controller ({len(writes)})</summary><table><tr>"
+                   "<th>request</th><th>address</th><th>values</th><th>time</th><th>answered</th><th>error</th></tr>"
+                   f"{rows}</table></details>") if writes else ""
+    story = "".join(f"<p>{_esc(line)}</p>" for line in facts.sentences())
+    return f'{story}<table class="kv">{table}</table>{writes_html}'
+
+
+UPLOAD_IDENTIFIERS = (("params_sha256", "uploaded set, SHA-256"), ("params_crc32", "uploaded set, CRC-32"),
+                      ("previous_live_sha256", "set it replaced, SHA-256"),
+                      ("live_after_sha256", "live set read back after the commit, SHA-256"),
+                      ("compensation_sha256", "compensation block, SHA-256"),
+                      ("previous_compensation_sha256", "block it replaced, SHA-256"))
+"""The identifiers of an upload shown in report.html, with what each is in words."""
 
 
 _CSS = """body{font-family:sans-serif;max-width:1250px;margin:2em auto;padding:0 1em;color:#222}

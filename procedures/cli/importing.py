@@ -143,7 +143,8 @@ def import_command(
 
 
 def robot_from_geometry_command(
-    geometry: Annotated[Path, typer.Argument(help="geometry TOML: joint circles, legs, home, travel, mass")],
+    geometry: Annotated[Path, typer.Argument(help="geometry TOML: joint circles, legs, home; travel and mass if "
+                                             "known (the README's 'Describing your machine' has the format)")],
     out_path: Annotated[Path, typer.Option("--out", help="robot TOML to write")],
 ) -> None:
     """Write a robot file from the numbers in a machine's documentation (docs/import.md)."""
@@ -151,7 +152,7 @@ def robot_from_geometry_command(
 
     try:
         spec = load_geometry(geometry)
-        robot, text = geometry_robot_toml(spec, str(geometry))
+        robot, text, defaults = geometry_robot_toml(spec, str(geometry))
     except ImportFileError as e:
         fail(str(e))
     _writable(out_path, [geometry])
@@ -169,4 +170,6 @@ def robot_from_geometry_command(
         out.print("[yellow]note:[/] no \\[cmm] section: the robot file holds a nominal tooling-sphere layout; "
                   "replace it with your spheres' positions before measuring with a CMM", highlight=False,
                   markup=True)
+    for note in defaults.notes:
+        out.print(f"[yellow]default[/] {escape(note)}", markup=True, highlight=False)
     out.print(f"wrote {out_path}")

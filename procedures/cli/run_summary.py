@@ -18,6 +18,8 @@ from rich.rule import Rule
 from rich.table import Table
 from rich.text import Text
 
+from hilcal.reports.upload import upload_facts
+
 FIGURES = (("max_position_mm", "max position", "mm", 4), ("rms_position_mm", "RMS position", "mm", 4),
            ("max_orientation_deg", "max orientation", "deg", 5), ("rms_orientation_deg", "RMS orientation", "deg", 5))
 """The verification figures: report key, label, unit and decimals (as the accuracy tables print them)."""
@@ -68,12 +70,11 @@ def uploaded_lines(report: Mapping[str, Any]) -> list[str]:
     mode = (report.get("compensation") or {}).get("mode")
     upload = report.get("upload") or {}
     record = upload.get("record") or {}
-    outcome = {"saved": "committed and saved to non-volatile memory", "committed": "committed"}.get(
-        upload.get("outcome"), upload.get("outcome") or "outcome not recorded")
-    readback = {True: "; read back: matches", False: "; read back: DIFFERS"}.get(record.get("live_readback_match"), "")
-    sha = record.get("params_sha256") or upload.get("sha256")
+    facts = upload_facts(upload)
+    outcome = "outcome not recorded" if facts is None else facts.summary()
+    sha = None if facts is None else facts.params_sha256
     lines = [f"mode {mode or 'not recorded'}" + (f": {MODES[mode]}" if mode in MODES else ""),
-             outcome + readback + (f" (sha256 {sha[:12]})" if isinstance(sha, str) else "")]
+             outcome + (f" (sha256 {sha[:12]})" if isinstance(sha, str) else "")]
     physics = report.get("physics") if isinstance(report.get("physics"), Mapping) else {}
     block = (report.get("compensation") or {}).get("compensation_block")
     if block:

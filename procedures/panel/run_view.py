@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from hilcal.metrics import pose_errors
+from hilcal.reports.upload import upload_facts
 from procedures import messages as m
 from procedures.adaptive import PROGRESS_LABEL
 from procedures.calibration_procedure import PRE_PHASES
@@ -141,9 +142,12 @@ class RunView:
             self.live.update("cmm", session="ready", homed_at=time.time())
             self.live.note("measuring instrument ready (CMM homed, or laser tracker initialised)")
         elif isinstance(msg, m.Upload):
+            facts = upload_facts(result)
             self.live.set("upload", {"outcome": result.get("outcome"), "sha256": result.get("sha256"),
-                                     "record": result.get("record"), "save_record": result.get("save_record")})
-            self.live.note(f"parameter upload: {result.get('outcome')} (read back and compared)")
+                                     "record": result.get("record"), "save_record": result.get("save_record"),
+                                     "summary": facts.summary() if facts else None,
+                                     "sentences": facts.sentences() if facts else []})
+            self.live.note(f"parameter upload: {facts.summary() if facts else result.get('outcome')}")
         elif isinstance(msg, m.ReadParams):
             self.live.note(f"controller parameters read ({msg.key})")
 

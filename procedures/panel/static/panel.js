@@ -509,8 +509,10 @@ function renderUpload() {
   const u = S().upload;
   if (!u) return;
   const r = u.record || {};
-  $("upload").innerHTML = `<p>Upload: <b class="${u.outcome === "saved" || u.outcome === "committed" ? "ok" : "bad"}" id="upload-outcome">${esc(u.outcome)}</b>` +
-    ` <span class="sub">sha256 ${esc((u.sha256 || "").slice(0, 16))} · ${esc(r.endpoint || "")} · ${esc(r.finished_at || "")}</span></p>`;
+  const good = (u.outcome === "saved" || u.outcome === "committed") && !/DIFFERS/.test(u.summary || "");
+  $("upload").innerHTML = `<p>Upload: <b class="${good ? "ok" : "bad"}" id="upload-outcome">${esc(u.summary || u.outcome)}</b>` +
+    ` <span class="sub">sha256 ${esc((u.sha256 || "").slice(0, 16))} · ${esc(r.endpoint || "")}</span></p>` +
+    (u.sentences || []).map((line) => `<p class="sub">${esc(line)}</p>`).join("");
 }
 
 function renderResult() {

@@ -90,7 +90,7 @@ def test_a_whole_run_driven_from_the_browser_alone(tmp_path, instant_plan):
             assert checks["missing_name"] and checks["disabled_before_confirm"]
             assert checks["diff_rows"] > 6, "the diff lists the changed parameters"
             assert "Predicted after the upload" in checks["prediction"] and "max" in checks["prediction"]
-            assert text(browser, "upload-outcome") == "saved"
+            assert text(browser, "upload-outcome") == "committed and saved to non-volatile memory; read back: matches"
             assert "after" in text(browser, "verification-summary")
             collect_latency(browser)
             report_url = browser.find_element("id", "link-report-html").get_attribute("href")

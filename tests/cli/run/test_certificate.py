@@ -146,6 +146,31 @@ def test_the_run_ends_with_its_summary(accepted: tuple[Path, subprocess.Complete
     assert summary[12].startswith(f"certificate {tmp / 'run' / 'certificate.'}") and len(summary) == 13
 
 
+
+def test_every_view_tells_the_same_upload_story(accepted: tuple[Path, subprocess.CompletedProcess]) -> None:
+    """The run commits, then saves as a separate step, each with its own record: the commit's record says saved
+    false, the save's says saved true. report.html, the certificate and the terminal say the same facts in words
+    (a report once said "outcome saved" above "saved False")."""
+    tmp, done = accepted
+    run = tmp / "run"
+    upload = json.loads((run / "report.json").read_text())["upload"]
+    commit, save = upload["record"], upload["save_record"]
+    assert commit["operation"] == "upload" and commit["outcome"] == "committed" and commit["saved"] is False
+    assert commit["live_readback_match"] is True and commit["staging_readback_match"] is True
+    assert save["operation"] == "save" and save["saved"] is True and save["saved_readback_match"] is True
+    with sqlite3.connect(tmp / "records.sqlite") as db:
+        rows = db.execute("SELECT record_json FROM uploads ORDER BY id").fetchall()
+    operations = [json.loads(row[0])["operation"] for row in rows]
+    assert operations == ["upload", "save"], "each step has its own record"
+    for name in ("report.html", "certificate.html"):
+        page = (run / name).read_text()
+        assert "Committed to the controller&#x27;s live set" in page and "the live set read back matches" in page, name
+        assert "Saved to non-volatile memory" in page and "the saved set read back matches" in page, name
+        assert "Not saved" not in page and "saved False" not in page and "DIFFERS" not in page, name
+    summary = [" ".join(line.split()) for line in done.stdout.splitlines()]
+    assert any(line.startswith("committed and saved to non-volatile memory; read back: matches (sha256 ")
+               for line in summary), "the terminal's summary"
+
 def test_a_limit_the_demo_machine_cannot_meet_fails(strict: tuple[Path, subprocess.CompletedProcess]) -> None:
     tmp, done = strict
     assert done.returncode == 4, done.stdout + done.stderr

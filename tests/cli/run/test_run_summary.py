@@ -47,7 +47,7 @@ def test_summary_of_a_complete_run() -> None:
                           "max orientation (deg) 0.05000 0.00030",
                           "RMS orientation (deg) 0.04000 0.00020"]
     assert lines[7:] == ["uploaded mode offsets_only: leg offsets l0 only",
-                         "committed; read back: matches (sha256 abcdef012345)",
+                         "committed (not saved); read back: matches (sha256 abcdef012345)",
                          "verdict not proven (2 limits, simple decision rule); max_position_mm not proven: 0.0125 ± "
                          "0.0025 mm against 0.013",
                          "report /runs/[bay 2]/report.html (and report.json)",
