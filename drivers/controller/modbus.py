@@ -149,11 +149,11 @@ class ControllerParams(StagedTransaction, DirectTransaction, ParameterInterface)
             response = call(address, device_id=self.device_id, **kwargs)
         except ModbusException as err:
             self._client.close()
-            raise ModbusTransportError(f"{what} at 0x{address:04X}: {err}") from err
+            raise ModbusTransportError(f"{what} at 0x{address:04X} ({address}): {err}") from err
         if response.isError():
             code = int(getattr(response, "exception_code", 0))
             meaning = EXCEPTION_MEANING.get(code, "not a code of the Modbus specification")
-            raise ModbusExceptionResponse(f"{what} at 0x{address:04X}: Modbus exception {code} ({meaning})",
+            raise ModbusExceptionResponse(f"{what} at 0x{address:04X} ({address}): Modbus exception {code} ({meaning})",
                                           response.function_code & 0x7F, address, code)
         return response
 
