@@ -25,6 +25,7 @@ from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from drivers.controller.modbus import (
+    CapabilityError,
     ControllerParams,
     IdentityError,
     ModbusExceptionResponse,
@@ -33,6 +34,7 @@ from drivers.controller.modbus import (
     UploadRefused,
 )
 from hilcal.protocols.registers import ParamStatus
+from hilcal.protocols.toml_text import toml_lines
 from hilcal.robot import Robot
 
 pytestmark = pytest.mark.timeout(60)
@@ -283,3 +285,30 @@ def test_a_device_that_is_not_the_maps_is_refused_and_named(start_peer, new_set:
         described = hilcal_map.describe()
     assert "Modbus exception 2 (ILLEGAL DATA ADDRESS" in described["identity_error"]
     assert "read geometry live at 0x0100" in described["geometry_error"]
+
+
+def test_a_map_of_the_leg_offsets_alone(start_peer, robot: Robot, nominal: np.ndarray, tmp_path: Path) -> None:
+    data = tomllib.loads(MAP_FILE.read_text())
+    del data["geometry"]["a"], data["geometry"]["b"]
+    path = tmp_path / "offsets-only.toml"
+    path.write_text("\n".join(toml_lines(data)) + "\n")
+    peer = start_peer()
+    raw = Raw(peer.port)
+    before = raw.registers_of_set()
+    fill = ParameterSet.from_robot(robot)
+    with ControllerParams("127.0.0.1", peer.port, register_map=path, nominal=fill) as params:
+        identity = params.read_identity()
+        assert identity.offsets_only and identity.parameter_count == 6
+        np.testing.assert_array_equal(params.read_live().to_vector(), np.r_[nominal[:36], held(nominal)[36:]])
+        changed_a = nominal.copy()
+        changed_a[4] += 0.5
+        with pytest.raises(CapabilityError, match="only the six leg offsets"):
+            params.upload(changed_a)
+        assert peer.writes == []
+        new = nominal.copy()
+        new[36:] += [0.25, -0.5, 0.125, 1.0, -1.0, 0.0005]
+        record = params.upload(new)
+    assert record.outcome == "committed" and [(w.address, w.count) for w in record.writes] == [(2200, 12)]
+    after = raw.registers_of_set()
+    assert after[2200] == encode_set(held(new))[2200] and after[2000] == before[2000] and after[2100] == before[2100]
+    raw.client.close()
