@@ -324,7 +324,8 @@ class ControllerParams(StagedTransaction, DirectTransaction, ParameterInterface)
     def describe(self) -> dict[str, Any]:
         """What ``hilcal check`` shows, as plain data: the map, identity, state, live geometry and its checksum (the
         device's checksum register, where the map has one, against the CRC-32 of the registers read). Each part that
-        cannot be read carries its error instead ("…_error": "IdentityError: …"); nothing is written."""
+        cannot be read carries its error instead ("…_error": "IdentityError: …"; after a transport error the rest is
+        not tried); nothing is written."""
         out: dict[str, Any] = {"endpoint": self.endpoint, "device_id": self.device_id, "map": self.map.device.name,
                                "transaction": self.map.device.transaction}
         steps: list[tuple[str, Callable[[], Any]]] = [
@@ -332,12 +333,17 @@ class ControllerParams(StagedTransaction, DirectTransaction, ParameterInterface)
             ("state", lambda: None if self.map.state is None else self.read_state().name),
             ("geometry", self._describe_geometry),
         ]
+        link_down: str | None = None
         for key, step in steps:
             try:
+                if link_down is not None:
+                    raise ModbusTransportError(f"not read: {link_down}")
                 out[key] = step()
             except ParamsError as err:
                 out[key] = None
                 out[f"{key}_error"] = f"{type(err).__name__}: {err}"
+                if isinstance(err, ModbusTransportError) and link_down is None:
+                    link_down = f"the link failed reading {key}"
         return out
 
     def _describe_geometry(self) -> dict[str, Any]:

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import copy
 import re
+import socket
 import struct
 import tomllib
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -181,3 +183,27 @@ def test_word_orders_agree_with_pymodbus_and_struct(type_: str) -> None:
             assert back == (np.float32(v) if type_ == "f32" else v)
     with pytest.raises(ValueError, match="does not fit"):
         encode([float("inf") if type_.startswith("f") else 2**64], type_, "ABCD")
+
+
+def test_describe_is_what_hilcal_check_shows(robot: Robot) -> None:
+    controller = SimulatedController(robot, SimulatedRig(robot, RigConfig(seed=1, errors=GeometryErrors.zero())),
+                                     ControllerSimConfig(serial_number=4711))
+    with ModbusTcpServer(controller).start() as server, ControllerParams("127.0.0.1", server.port) as params:
+        described = params.describe()
+        raw = ModbusTcpClient("127.0.0.1", port=server.port, timeout=1.0, retries=0)
+        live = raw.read_holding_registers(0x0100, count=84, device_id=1).registers
+        raw.close()
+        assert server.writes == []
+    crc = f"{zlib.crc32(struct.pack('>84H', *live)):08x}"
+    assert described["identity"]["serial_number"] == 4711 and described["state"] == "DISABLED"
+    assert described["geometry"]["crc32"] == described["geometry"]["checksum_register"] == crc
+    assert described["geometry"]["checksum_match"] is True and described["map"] == DEFAULT_MAP
+    np.testing.assert_array_equal(ParameterSet.model_validate(described["geometry"]["set"]).to_vector(),
+                                  np.asarray(struct.unpack(">42f", struct.pack(">84H", *live)), dtype=float))
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        dead = s.getsockname()[1]
+    with ControllerParams("127.0.0.1", dead, timeout_s=0.5) as params:
+        described = params.describe()
+    assert described["identity_error"].startswith("ModbusTransportError: read identity at 0x0000")
+    assert described["geometry_error"] == "ModbusTransportError: not read: the link failed reading identity"
