@@ -448,6 +448,9 @@ class ControllerParams(StagedTransaction, DirectTransaction, ParameterInterface)
         record.params_sha256 = target.sha256()
         record.params_crc32 = f"{crc32_of_words(self._flat(words)):08x}"
         try:
+            if save and "save" not in (self.map.commands.codes() if self.map.commands else {}):
+                raise CapabilityError(f"register map {self.map.device.name} has no save command: upload without "
+                                      "save; nothing written")
             parts = self._geometry_parts(identity, self._vector(live), vector)
             if compensation is not None and comp_words is not None:
                 self._check_compensation(identity, compensation)

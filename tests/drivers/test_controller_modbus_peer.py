@@ -312,3 +312,16 @@ def test_a_map_of_the_leg_offsets_alone(start_peer, robot: Robot, nominal: np.nd
     after = raw.registers_of_set()
     assert after[2200] == encode_set(held(new))[2200] and after[2000] == before[2000] and after[2100] == before[2100]
     raw.client.close()
+
+
+def test_a_save_the_map_cannot_do_is_refused_before_writing(start_peer, new_set: np.ndarray, tmp_path: Path) -> None:
+    data = tomllib.loads(MAP_FILE.read_text())
+    del data["commands"]
+    path = tmp_path / "no-save.toml"
+    path.write_text("\n".join(toml_lines(data)) + "\n")
+    peer = start_peer()
+    with ControllerParams("127.0.0.1", peer.port, register_map=path) as params:
+        with pytest.raises(CapabilityError, match="no save command"):
+            params.upload(new_set, save=True)
+        assert peer.writes == [] and params.records[-1].outcome == "refused"
+        assert params.upload(new_set).outcome == "committed"
