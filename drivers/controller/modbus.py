@@ -323,7 +323,8 @@ class ControllerParams(StagedTransaction, DirectTransaction, ParameterInterface)
 
     def describe(self) -> dict[str, Any]:
         """What ``hilcal check`` shows, as plain data: the map, identity, state, live geometry and its checksum (the
-        device's checksum register, where the map has one, against the CRC-32 of the registers read). Each part that
+        device's checksum register, where the map has one, against the CRC-32 of the registers read), the fault code
+        and diagnostics registers. Each part that
         cannot be read carries its error instead ("…_error": "IdentityError: …"; after a transport error the rest is
         not tried); nothing is written."""
         out: dict[str, Any] = {"endpoint": self.endpoint, "device_id": self.device_id, "map": self.map.device.name,
@@ -332,6 +333,7 @@ class ControllerParams(StagedTransaction, DirectTransaction, ParameterInterface)
             ("identity", lambda: self.read_identity().as_dict()),
             ("state", lambda: None if self.map.state is None else self.read_state().name),
             ("geometry", self._describe_geometry),
+            ("registers", self._describe_registers),
         ]
         link_down: str | None = None
         for key, step in steps:
@@ -345,6 +347,14 @@ class ControllerParams(StagedTransaction, DirectTransaction, ParameterInterface)
                 if isinstance(err, ModbusTransportError) and link_down is None:
                     link_down = f"the link failed reading {key}"
         return out
+
+    def _describe_registers(self) -> dict[str, int | float]:
+        """The fault code and the map's diagnostics registers."""
+        fields = dict(self.map.diagnostics)
+        if self.map.fault_code is not None:
+            fields["fault_code"] = self.map.fault_code
+        regs = self._read_many([(f.address, f.count) for f in fields.values()], "read diagnostics")
+        return {k: field_value(self.map, f, [regs[f.address + j] for j in range(f.count)]) for k, f in fields.items()}
 
     def _describe_geometry(self) -> dict[str, Any]:
         words = self._bank_parts("live")

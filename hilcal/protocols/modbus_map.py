@@ -34,7 +34,8 @@ INTEGER_RANGE: dict[str, tuple[int, int]] = {"u16": (0, 0xFFFF), "i16": (-0x8000
                                              "u32": (0, 0xFFFF_FFFF), "i32": (-0x8000_0000, 0x7FFF_FFFF)}
 Address = Annotated[int, Field(ge=0, le=0xFFFF)]
 Word = Annotated[int, Field(ge=0, le=0xFFFF)]
-StateValues = Word | list[Word]
+StateValue = Annotated[int, Field(ge=0, le=0xFFFF_FFFF)]
+StateValues = StateValue | list[StateValue]
 PARTS = ("a", "b", "l0")
 PART_START = {"a": 0, "b": 3 * N_LEGS, "l0": 6 * N_LEGS}
 PART_VALUES = {"a": 3 * N_LEGS, "b": 3 * N_LEGS, "l0": N_LEGS}

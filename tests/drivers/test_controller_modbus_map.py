@@ -192,12 +192,16 @@ def test_describe_is_what_hilcal_check_shows(robot: Robot) -> None:
         described = params.describe()
         raw = ModbusTcpClient("127.0.0.1", port=server.port, timeout=1.0, retries=0)
         live = raw.read_holding_registers(0x0100, count=84, device_id=1).registers
+        counters = raw.read_holding_registers(0x0022, count=3, device_id=1).registers  # docs/protocols.md
+        fault = raw.read_holding_registers(0x0011, count=1, device_id=1).registers[0]
         raw.close()
         assert server.writes == []
     crc = f"{zlib.crc32(struct.pack('>84H', *live)):08x}"
     assert described["identity"]["serial_number"] == 4711 and described["state"] == "DISABLED"
     assert described["geometry"]["crc32"] == described["geometry"]["checksum_register"] == crc
     assert described["geometry"]["checksum_match"] is True and described["map"] == DEFAULT_MAP
+    assert described["registers"] == dict(zip(("commit_counter", "save_counter", "staged_written"), counters,
+                                              strict=True)) | {"fault_code": fault}
     np.testing.assert_array_equal(ParameterSet.model_validate(described["geometry"]["set"]).to_vector(),
                                   np.asarray(struct.unpack(">42f", struct.pack(">84H", *live)), dtype=float))
     with socket.socket() as s:  # a port nobody listens on
