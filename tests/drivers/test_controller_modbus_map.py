@@ -96,6 +96,7 @@ def bad(change: Any) -> str:
     (lambda d: d["identity"]["magic"].update(type="u8"), "identity.magic.type"),
     (lambda d: d["commands"].pop("commit"), 'commands.commit: transaction = "staged" needs the commit command'),
     (lambda d: d.pop("status"), 'status: transaction = "staged" needs a [status] register'),
+    (lambda d: d.pop("commands"), 'commands.open_staging: transaction = "staged" needs the open_staging command'),
     (lambda d: d["geometry"]["b"].pop("backup"), "geometry.b.backup: the rollback command needs"),
     (lambda d: d["geometry"]["a"].pop("staging"), "geometry.a.staging: transaction = \"staged\" needs"),
     (lambda d: d["device"].update(transaction="direct"), 'commands.open_staging: transaction = "direct" has no'),
