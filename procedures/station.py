@@ -26,6 +26,7 @@ Example::
     port = 502
     device_id = 1
     timeout_s = 1.0
+    map = "maps/hexapod.toml"          # its register map (docs/modbus_maps.md); omit for hilcal's own hilcal-1.1
 
     [instrument]
     kind = "cmm"                       # the default; "tracker": a laser tracker, [tracker] (procedures.tracker_section)
@@ -78,15 +79,17 @@ from typing import Any
 
 import numpy as np
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from drivers.cmm.base import ProbingConfig, as_transform
 from drivers.cmm.serial import SerialCmm, SerialCmmConfig
 from drivers.cmm.types import DEFAULT_ALIGNMENT_DEG, DEFAULT_ALIGNMENT_MM
 from drivers.controller.hilcal_can import ControllerCan
 from drivers.controller.modbus import ControllerParams
+from drivers.controller.parameter_sets import ParameterSet
 from drivers.instrument import CmmPoseInstrument, PoseInstrument, TrackerPoseInstrument
 from drivers.tracker.emscon import EmsconTracker
+from hilcal.protocols.modbus_map import RegisterMap, RegisterMapError, default_register_map, load_register_map
 from hilcal.protocols.toml_text import toml_lines
 from hilcal.robot import Robot, RobotFileError, load_robot
 from procedures.link_guard import LinksSection
@@ -122,7 +125,9 @@ class CanSection(BaseModel):
 
 
 class ModbusSection(_Strict):
-    """The controller's parameter interface: Modbus TCP (host, port) or RTU (serial_port, baudrate)."""
+    """The controller's parameter interface: Modbus TCP (host, port) or RTU (serial_port, baudrate), and its register
+    map (``map``: a built-in map's name or a map file, relative to the station file; default hilcal's own
+    ``hilcal-1.1``), read and validated with the station (docs/modbus_maps.md)."""
 
     host: str | None = None
     port: int = Field(default=502, ge=1, le=65535)
@@ -130,12 +135,38 @@ class ModbusSection(_Strict):
     baudrate: int = Field(default=115200, gt=0)
     device_id: int = Field(default=1, ge=1, le=247)
     timeout_s: float = Field(default=1.0, gt=0)
+    map: str | None = Field(default=None, min_length=1, description="register map: a built-in map's name or a map "
+                            "file (None: hilcal-1.1)")
+    _register_map: RegisterMap = PrivateAttr(default_factory=default_register_map)
+
+    @field_validator("map")
+    @classmethod
+    def _map_is_valid(cls, v: str | None) -> str | None:
+        if v is not None:
+            try:
+                load_register_map(v)
+            except RegisterMapError as err:
+                raise ValueError(str(err)) from None
+        return v
 
     @model_validator(mode="after")
     def _one_transport(self) -> ModbusSection:
         if (self.host is None) == (self.serial_port is None):
             raise ValueError("give either host (Modbus TCP) or serial_port (Modbus RTU), not both or neither")
+        if self.map is not None:
+            self._register_map = load_register_map(self.map)
         return self
+
+    def register_map(self) -> RegisterMap:
+        """The validated register map."""
+        return self._register_map
+
+    def open_params(self, nominal: ParameterSet | None = None) -> ControllerParams:
+        """The parameter interface's driver (nothing is sent yet); ``nominal``: the robot's nominal set, for the parts
+        of the geometry a map without them does not hold."""
+        return ControllerParams(self.host, self.port, serial_port=self.serial_port, baudrate=self.baudrate,
+                                device_id=self.device_id, timeout_s=self.timeout_s,
+                                register_map=self._register_map, nominal=nominal)
 
 
 class CmmSection(CmmIdentity):

@@ -235,8 +235,10 @@ class ParameterInterface(ABC):
         """Copy the live set to non-volatile memory and verify it."""
 
     @abstractmethod
-    def rollback(self) -> UploadRecord:
-        """Put the set in use before the last commit back."""
+    def rollback(self, previous: ParameterSet | None = None) -> UploadRecord:
+        """Put the set in use before the last commit back. A device that keeps a backup uses its own and ignores
+        ``previous``; one that keeps none writes ``previous`` (the caller's record of the set before the last upload,
+        e.g. the upload record's ``previous_live_sha256`` looked up in the records) or refuses without it."""
 
     @abstractmethod
     def close(self) -> None:

@@ -1,26 +1,39 @@
-"""Modbus driver of the controller's parameter interface (pymodbus client; Modbus TCP or RTU).
+"""Modbus driver of the controller's parameter interface (pymodbus client; Modbus TCP or RTU), by a register map.
 
-``ControllerParams.upload`` is a transaction (see docs/protocols.md): refuse unless the controller is
-DISABLED; OPEN_STAGING; write the staging banks in chunks of at most 123 registers (the geometry and, on a
-register-map 1.1 controller, the compensation block); write STAGED_LENGTH, STAGED_CRC32 and STAGED_COMP_CRC32; read
-staging back and compare; COMMIT (the controller checks length, CRCs and limits and swaps geometry and block
-atomically, keeping the previous pair as backup); read live back and compare. Saving to non-volatile memory is a
-separate explicit step (``save``); ``rollback`` swaps live and backup (both). Requests are never retried
-(retries=0): a write whose answer was lost may have been executed, so the caller starts a new upload, which
-re-opens staging. Every operation returns (or attaches to its exception) an ``UploadRecord`` of each write,
-the hashes of the sets involved, timestamps and read-back results; ``records`` keeps them all.
+The register map (``hilcal.protocols.modbus_map``; default: hilcal's own ``hilcal-1.1``) says where everything is and
+which transaction the device takes. ``transaction = "staged"`` (see docs/protocols.md): refuse unless DISABLED;
+OPEN_STAGING; write the staging banks in chunks (the geometry and, where the map has one, the compensation block);
+write the staged length and checksums; read staging back and compare; COMMIT (the device swaps the set in atomically,
+keeping the previous one as backup); read live back and compare. ``save`` and ``rollback`` are commands of their own.
+``transaction = "direct"`` (a device without staging: ``modbus_direct.py``): refuse unless disabled, record the old
+set, write live, read back, on any failure write the old set back. Requests are never retried (retries=0): a write
+whose answer was lost may have been executed, so the caller starts a new upload. Every operation returns (or attaches
+to its exception) an ``UploadRecord``; ``records`` keeps them all. ``describe()`` is what ``hilcal check`` shows.
 """
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import structlog
 
 from drivers.controller.base import ParameterInterface
+from drivers.controller.modbus_codec import (
+    Block,
+    chunks,
+    field_value,
+    geometry_vector,
+    geometry_words,
+    sha_of_vector,
+    sha_of_words,
+    spans,
+    u32_value,
+)
+from drivers.controller.modbus_direct import DirectTransaction
+from drivers.controller.modbus_staged import StagedTransaction
 from drivers.controller.parameter_sets import (
     CapabilityError,
     CompensationBlock,
@@ -38,41 +51,15 @@ from drivers.controller.parameter_sets import (
     WriteRecord,
     now_utc,
 )
-from hilcal.protocols.compensation import COMP_BACKUP_BANK, COMP_LIVE_BANK, COMP_SAVED_BANK, COMP_STAGING_BANK
+from hilcal.protocols.compensation import BLOCK_REGISTERS
 from hilcal.protocols.controller_states import ControllerState
+from hilcal.protocols.modbus_map import RegisterMap, default_register_map, load_register_map
 from hilcal.protocols.registers import (
-    BACKUP_BANK,
-    CAPABILITIES_REG,
-    CONTROLLER_STATE_REG,
-    L0_INDEX,
-    L0_REGISTERS,
-    LEG_FORCES_REG,
-    LEG_TEMPERATURE_REG,
-    LIVE_BANK,
-    LIVE_COMP_CRC32_REG,
-    LIVE_CRC32_REG,
-    MAGIC,
-    MAGIC_REG,
-    MAX_READ_REGISTERS,
     MAX_WRITE_REGISTERS,
-    PARAM_COMMAND_REG,
-    PARAM_STATUS_REG,
     PARAMETER_COUNT,
-    PARAMETER_COUNT_REG,
-    PARAMETER_REGISTERS,
-    REGISTERS_PER_FLOAT,
-    SAVED_BANK,
-    STAGED_LENGTH_REG,
-    STAGING_BANK,
     Capability,
-    ParamCommand,
     ParamStatus,
-    Register,
     crc32_of_words,
-    floats_from_words,
-    join_u32,
-    split_u32,
-    words_to_bytes,
 )
 
 if TYPE_CHECKING:
@@ -87,16 +74,27 @@ __all__ = [
 log = structlog.get_logger(__name__)
 
 DEFAULT_CHUNK_REGISTERS = 64
-IDENTITY_REGISTERS = PARAMETER_COUNT_REG.end - MAGIC_REG.address
-CAPABILITY_MASK = 0x007F
+EXCEPTION_MEANING = {
+    1: "ILLEGAL FUNCTION: the device does not take this function code",
+    2: "ILLEGAL DATA ADDRESS: no such register, or not writable, on this device (check the map's address)",
+    3: "ILLEGAL DATA VALUE: the device refused the value or the quantity",
+    4: "SERVER DEVICE FAILURE: the device failed while carrying out the request",
+    5: "ACKNOWLEDGE: accepted, still being processed",
+    6: "SERVER DEVICE BUSY: try again later",
+    8: "MEMORY PARITY ERROR",
+    10: "GATEWAY PATH UNAVAILABLE",
+    11: "GATEWAY TARGET DEVICE FAILED TO RESPOND: no device answers at this device id",
+}
+"""Modbus exception codes (MODBUS Application Protocol v1.1b3, 7)."""
 
 
-def _sha(words: Sequence[int]) -> str:
-    return hashlib.sha256(words_to_bytes(words)).hexdigest()
+class ControllerParams(StagedTransaction, DirectTransaction, ParameterInterface):
+    """The controller's Modbus parameter interface; TCP (``host``/``port``) or RTU (``serial_port``).
 
-
-class ControllerParams(ParameterInterface):
-    """The controller's Modbus parameter interface; TCP (``host``/``port``) or RTU (``serial_port``)."""
+    ``register_map``: a ``RegisterMap``, a built-in map's name or a map file's path (None: ``hilcal-1.1``); an invalid
+    map raises ``RegisterMapError`` here, before anything is sent. ``nominal``: the values of the geometry parts the
+    device does not hold (the robot file's nominal set), required when the map holds the leg offsets alone.
+    """
 
     def __init__(
         self,
@@ -108,16 +106,24 @@ class ControllerParams(ParameterInterface):
         device_id: int = 1,
         timeout_s: float = 1.0,
         chunk_registers: int = DEFAULT_CHUNK_REGISTERS,
+        register_map: RegisterMap | str | Path | None = None,
+        nominal: ParameterSet | None = None,
     ) -> None:
         if (host is None) == (serial_port is None):
             raise ValueError("give either host (Modbus TCP) or serial_port (Modbus RTU)")
         if not 1 <= chunk_registers <= MAX_WRITE_REGISTERS:
             raise ValueError(f"chunk_registers must be 1..{MAX_WRITE_REGISTERS}")
+        self.map = (default_register_map() if register_map is None else register_map
+                    if isinstance(register_map, RegisterMap) else load_register_map(register_map))
+        if self.map.held_values() < PARAMETER_COUNT and nominal is None:
+            raise ValueError(f"register map {self.map.device.name} holds the leg offsets alone: give nominal= (the "
+                             "robot's nominal set) for the joint coordinates a and b")
+        self.fill = np.zeros(PARAMETER_COUNT) if nominal is None else nominal.to_vector()
         from pymodbus import FramerType  # here, not at the top: the records and the engine use only the models
         from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
         self.device_id = device_id
-        self.chunk_registers = chunk_registers
+        self.chunk_registers = min(chunk_registers, self.map.device.max_write_registers)
         self.records: list[UploadRecord] = []
         self._client: ModbusTcpClient | ModbusSerialClient
         if host is not None:
@@ -129,6 +135,7 @@ class ControllerParams(ParameterInterface):
             self._client = ModbusSerialClient(
                 serial_port, framer=FramerType.RTU, baudrate=baudrate, timeout=timeout_s, retries=0
             )
+        super().__init__()
 
     def close(self) -> None:
         self._client.close()
@@ -142,28 +149,33 @@ class ControllerParams(ParameterInterface):
             response = call(address, device_id=self.device_id, **kwargs)
         except ModbusException as err:
             self._client.close()
-            raise ModbusTransportError(f"{what} at 0x{address:04X}: {err}") from err
+            raise ModbusTransportError(f"{what} at 0x{address:04X} ({address}): {err}") from err
         if response.isError():
             code = int(getattr(response, "exception_code", 0))
-            raise ModbusExceptionResponse(
-                f"{what} at 0x{address:04X}: Modbus exception {code}", response.function_code & 0x7F, address, code
-            )
+            meaning = EXCEPTION_MEANING.get(code, "not a code of the Modbus specification")
+            raise ModbusExceptionResponse(f"{what} at 0x{address:04X} ({address}): Modbus exception {code} ({meaning})",
+                                          response.function_code & 0x7F, address, code)
         return response
 
-    def _read(self, address: int, count: int) -> list[int]:
+    def _read(self, address: int, count: int, what: str = "read") -> list[int]:
         out: list[int] = []
-        for start in range(address, address + count, MAX_READ_REGISTERS):
-            n = min(MAX_READ_REGISTERS, address + count - start)
-            response = self._request("read", self._client.read_holding_registers, start, count=n)
+        step = self.map.device.max_read_registers
+        for start in range(address, address + count, step):
+            n = min(step, address + count - start)
+            response = self._request(what, self._client.read_holding_registers, start, count=n)
             registers = list(response.registers)
             if len(registers) != n:
                 self._client.close()
-                raise ModbusTransportError(f"read at 0x{start:04X}: {len(registers)} registers instead of {n}")
+                raise ModbusTransportError(f"{what} at 0x{start:04X}: {len(registers)} registers instead of {n}")
             out.extend(registers)
         return out
 
-    def _read_block(self, reg: Register) -> list[int]:
-        return self._read(reg.address, reg.count)
+    def _read_many(self, wanted: Sequence[tuple[int, int]], what: str) -> dict[int, int]:
+        """Registers of several spans (adjacent ones in one request) by address."""
+        out: dict[int, int] = {}
+        for address, count in spans(wanted):
+            out.update(zip(range(address, address + count), self._read(address, count, what), strict=True))
+        return out
 
     def _write(self, record: UploadRecord | None, address: int, values: Sequence[int]) -> None:
         single = len(values) == 1
@@ -182,66 +194,183 @@ class ControllerParams(ParameterInterface):
             raise
         entry.ok = True
 
+    def _write_blocks(self, record: UploadRecord | None, blocks: Sequence[Block]) -> None:
+        for address, words in chunks(blocks, self.chunk_registers):
+            self._write(record, address, words)
+
+    # ------------------------------------------------------------------ the map's banks
+
+    def _bank_parts(self, bank: str, parts: Sequence[str] | None = None) -> dict[str, list[int]]:
+        """The held geometry parts' registers in one bank (CapabilityError if the map has no such bank)."""
+        layout = [p for p in self.map.parts() if parts is None or p.name in parts]
+        missing = [p.name for p in layout if p.banks[bank] is None]
+        if missing:
+            raise CapabilityError(f"register map {self.map.device.name} has no {bank} bank for {', '.join(missing)}")
+        regs = self._read_many([(p.banks[bank], p.registers) for p in layout], f"read geometry {bank}")
+        return {p.name: [regs[p.banks[bank] + k] for k in range(p.registers)] for p in layout}
+
+    def _flat(self, words: dict[str, list[int]]) -> list[int]:
+        """Held parts' registers in set order: what the device's checksum covers."""
+        return [w for p in self.map.parts() if p.name in words for w in words[p.name]]
+
+    def _vector(self, words: dict[str, list[int]]) -> np.ndarray:
+        try:
+            return geometry_vector(self.map, words, self.fill)
+        except ValueError as err:
+            raise ParameterValidationError(str(err)) from None
+
+    def _bank_set(self, bank: str) -> ParameterSet:
+        return ParameterSet.from_vector(self._vector(self._bank_parts(bank)))
+
+    def _comp_read(self, bank: str) -> list[int]:
+        comp = self.map.compensation
+        address = None if comp is None else getattr(comp, bank)
+        if address is None:
+            raise CapabilityError(f"register map {self.map.device.name} has no compensation {bank} bank")
+        return self._read(address, BLOCK_REGISTERS, f"read compensation {bank}")
+
+    def _checksum(self, bank: str, compensation: bool = False) -> int | None:
+        """A checksum register's value (None where the map has none)."""
+        section = self.map.compensation.checksum if compensation and self.map.compensation else self.map.checksum
+        address = None if section is None else getattr(section, bank)
+        return None if address is None else u32_value(self.map, self._read(address, 2, f"read {bank} checksum"))
+
+    def device_set(self, params: ParameterSet | Sequence[float] | np.ndarray) -> ParameterSet:
+        """The set as the device will hold it: validated, the held parts rounded through the map's types and scales
+        (float32 for hilcal's map). ParameterValidationError (nothing sent) for a value the map cannot hold."""
+        target = params if isinstance(params, ParameterSet) else ParameterSet.from_vector(params)
+        vector = target.to_vector()
+        try:
+            return ParameterSet.from_vector(geometry_vector(self.map, geometry_words(self.map, vector), vector))
+        except ValueError as err:
+            raise ParameterValidationError(f"register map {self.map.device.name}: {err}; nothing written") from None
+
     # ------------------------------------------------------------------ reads
 
     def read_identity(self) -> Identity:
-        words = self._read(MAGIC_REG.address, IDENTITY_REGISTERS)
+        ident = self.map.identity.fields() if self.map.identity else {}
+        regs = self._read_many([(f.address, f.count) for f in ident.values()], "read identity")
+        values = {k: int(field_value(self.map, f, [regs[f.address + j] for j in range(f.count)]))
+                  for k, f in ident.items()}
+        declared = self.map.capabilities()
+        if "capabilities" in values:
+            caps = Capability(values["capabilities"] & int(declared))
+        else:
+            caps = declared & ~Capability.OFFSETS_ONLY if Capability.FULL_GEOMETRY in declared else declared
         identity = Identity(
-            magic=words[0],
-            protocol_version=words[1],
-            firmware_version=words[2],
-            serial_number=join_u32(words[3:5]),
-            capabilities=Capability(words[CAPABILITIES_REG.address] & CAPABILITY_MASK),
-            parameter_count=words[6],
-        )
-        if identity.magic != MAGIC or identity.parameter_count != PARAMETER_COUNT:
-            raise IdentityError(
-                f"not a compatible controller: magic 0x{identity.magic:04X} (expected 0x{MAGIC:04X}), "
-                f"{identity.parameter_count} parameters (expected {PARAMETER_COUNT})"
-            )
+            magic=values.get("magic", 0), protocol_version=values.get("protocol_version", 0),
+            firmware_version=values.get("firmware_version", 0), serial_number=values.get("serial_number", 0),
+            capabilities=caps, parameter_count=values.get("parameter_count", self.map.held_values()))
+        wrong = [f"{k} 0x{values[k]:04X} (expected 0x{f.expect:04X})" if k == "magic" else
+                 f"{k} {values[k]} (expected {f.expect})" for k, f in ident.items()
+                 if f.expect is not None and values[k] != f.expect]
+        if wrong:
+            raise IdentityError(f"not a compatible controller for register map {self.map.device.name}: "
+                                f"{', '.join(wrong)}")
         return identity
 
     def read_state(self) -> ControllerState:
-        value = self._read_block(CONTROLLER_STATE_REG)[0]
-        try:
-            return ControllerState(value)
-        except ValueError:
-            raise IdentityError(f"controller state register holds unknown value {value}") from None
+        s = self.map.state
+        if s is None:
+            raise CapabilityError(f"register map {self.map.device.name} has no state register")
+        value = int(field_value(self.map, s, self._read(s.address, s.count, "read state"))) & s.mask  # type: ignore[arg-type]
+        for state, raw in s.values().items():
+            if value in raw:
+                return state
+        raise IdentityError(f"controller state register holds unknown value {value} (0x{value:X}): not in the map "
+                            f"{self.map.device.name}'s [state] values")
 
     def read_status(self) -> ParamStatus:
-        value = self._read_block(PARAM_STATUS_REG)[0]
-        try:
-            return ParamStatus(value)
-        except ValueError:
-            raise IdentityError(f"PARAM_STATUS holds unknown value {value}") from None
+        s = self.map.status
+        if s is None:
+            raise CapabilityError(f"register map {self.map.device.name} has no status register")
+        value = self._read(s.address, 1, "read status")[0]
+        for status, raw in s.codes().items():
+            if raw == value:
+                return status
+        raise IdentityError(f"PARAM_STATUS holds unknown value {value}")
 
     def read_live(self) -> ParameterSet:
-        return ParameterSet.from_words(self._read_block(LIVE_BANK))
+        return self._bank_set("live")
 
     def read_backup(self) -> ParameterSet:
-        return ParameterSet.from_words(self._read_block(BACKUP_BANK))
+        return self._bank_set("backup")
 
     def read_saved(self) -> ParameterSet:
-        return ParameterSet.from_words(self._read_block(SAVED_BANK))
+        return self._bank_set("saved")
 
     def read_live_compensation(self) -> CompensationBlock:
         """The compensation block in use (register map 1.1 only)."""
-        return CompensationBlock.from_words(self._read_block(COMP_LIVE_BANK))
+        return CompensationBlock.from_words(self._comp_read("live"))
 
     def read_saved_compensation(self) -> CompensationBlock:
-        return CompensationBlock.from_words(self._read_block(COMP_SAVED_BANK))
+        return CompensationBlock.from_words(self._comp_read("saved"))
+
+    def _sensor(self, name: str, n: int) -> list[float]:
+        f = getattr(self.map.sensors, name, None) if self.map.sensors else None
+        if f is None:
+            raise CapabilityError(f"register map {self.map.device.name} has no {name} reading")
+        words = self._read(f.address, n * f.count, f"read {name}")
+        return [float(field_value(self.map, f, words[k:k + f.count])) for k in range(0, len(words), f.count)]
 
     def read_leg_forces_kn(self) -> np.ndarray:
         """Each leg's axial compression as the controller reads it (kN; FORCE_READING only)."""
-        return np.asarray(floats_from_words(self._read_block(LEG_FORCES_REG)), dtype=float)
+        return np.asarray(self._sensor("leg_forces_kn", 6), dtype=float)
 
     def read_temperature_c(self) -> float:
         """The leg temperature as the controller reads it (°C; TEMPERATURE_READING only)."""
-        return float(floats_from_words(self._read_block(LEG_TEMPERATURE_REG))[0])
+        return self._sensor("temperature_c", 1)[0]
+
+    def describe(self) -> dict[str, Any]:
+        """What ``hilcal check`` shows, as plain data: the map, identity, state, live geometry and its checksum (the
+        device's checksum register, where the map has one, against the CRC-32 of the registers read), the fault code
+        and diagnostics registers. Each part that
+        cannot be read carries its error instead ("…_error": "IdentityError: …"; after a transport error the rest is
+        not tried); nothing is written."""
+        out: dict[str, Any] = {"endpoint": self.endpoint, "device_id": self.device_id, "map": self.map.device.name,
+                               "transaction": self.map.device.transaction}
+        steps: list[tuple[str, Callable[[], Any]]] = [
+            ("identity", lambda: self.read_identity().as_dict()),
+            ("state", lambda: None if self.map.state is None else self.read_state().name),
+            ("geometry", self._describe_geometry),
+            ("registers", self._describe_registers),
+        ]
+        link_down: str | None = None
+        for key, step in steps:
+            try:
+                if link_down is not None:
+                    raise ModbusTransportError(f"not read: {link_down}")
+                out[key] = step()
+            except ParamsError as err:
+                out[key] = None
+                out[f"{key}_error"] = f"{type(err).__name__}: {err}"
+                if isinstance(err, ModbusTransportError) and link_down is None:
+                    link_down = f"the link failed reading {key}"
+        return out
+
+    def _describe_registers(self) -> dict[str, int | float]:
+        """The fault code and the map's diagnostics registers."""
+        fields = dict(self.map.diagnostics)
+        if self.map.fault_code is not None:
+            fields["fault_code"] = self.map.fault_code
+        regs = self._read_many([(f.address, f.count) for f in fields.values()], "read diagnostics")
+        return {k: field_value(self.map, f, [regs[f.address + j] for j in range(f.count)]) for k, f in fields.items()}
+
+    def _describe_geometry(self) -> dict[str, Any]:
+        words = self._bank_parts("live")
+        crc = crc32_of_words(self._flat(words))
+        device = self._checksum("live")
+        out: dict[str, Any] = {"held": [p.name for p in self.map.parts()], "crc32": f"{crc:08x}",
+                               "checksum_register": None if device is None else f"{device:08x}",
+                               "checksum_match": None if device is None else device == crc}
+        out["set"] = ParameterSet.from_vector(self._vector(words)).model_dump()
+        return out
 
     # ------------------------------------------------------------------ transactions
 
-    def _begin(self, operation: Literal["upload", "rollback", "save"]) -> tuple[UploadRecord, Identity]:
+    def _begin(self, operation: Literal["upload", "rollback", "save"]
+               ) -> tuple[UploadRecord, Identity, dict[str, list[int]]]:
+        """Record, identity, DISABLED (where the map has a state register) and the live set before anything."""
         record = UploadRecord(operation=operation, endpoint=self.endpoint, device_id=self.device_id,
                               started_at=now_utc())
         self.records.append(record)
@@ -249,21 +378,22 @@ class ControllerParams(ParameterInterface):
             identity = self.read_identity()
             record.identity = identity.as_dict()
             record.offsets_only = identity.offsets_only
-            state = self.read_state()
-            if state is not ControllerState.DISABLED:
-                raise NotDisabled(f"controller is {state.name}: parameters change only while DISABLED; "
-                                  "nothing written")
-            live = self._read_block(LIVE_BANK)
-            record.previous_live_crc32 = f"{crc32_of_words(live):08x}"
-            record.previous_live_sha256 = _sha(live)
+            if self.map.state is not None:
+                state = self.read_state()
+                if state is not ControllerState.DISABLED:
+                    raise NotDisabled(f"controller is {state.name}: parameters change only while DISABLED; "
+                                      "nothing written")
+            live = self._bank_parts("live")
+            record.previous_live_crc32 = f"{crc32_of_words(self._flat(live)):08x}"
+            record.previous_live_sha256 = sha_of_vector(self._vector(live))
             if identity.compensation:
-                comp = self._read_block(COMP_LIVE_BANK)
-                record.previous_compensation_sha256 = _sha(comp)
+                comp = self._comp_read("live")
+                record.previous_compensation_sha256 = sha_of_words(comp)
                 record.previous_compensation_crc32 = f"{crc32_of_words(comp):08x}"
         except ParamsError as err:
             self._finish(record, err)
             raise
-        return record, identity
+        return record, identity, live
 
     def _finish(
         self,
@@ -283,27 +413,27 @@ class ControllerParams(ParameterInterface):
         err.record = record
         log.warning("controller_params", operation=record.operation, outcome=record.outcome, error=record.error)
 
-    def _command(self, record: UploadRecord, command: ParamCommand) -> None:
-        self._write(record, PARAM_COMMAND_REG.address, [int(command)])
+    def _command(self, record: UploadRecord, name: str) -> None:
+        codes = self.map.commands.codes() if self.map.commands else {}
+        if name not in codes:
+            raise CapabilityError(f"register map {self.map.device.name} has no {name} command")
+        self._write(record, self.map.commands.address, [codes[name]])  # type: ignore[union-attr]
+        if self.map.status is None:
+            return
         status = self.read_status()
         record.controller_status = status.name
         if status is not ParamStatus.OK:
-            raise UploadRefused(f"controller refused {command.name}: {status.name}", status)
+            raise UploadRefused(f"controller refused {name.upper()}: {status.name}", status)
 
-    def _geometry_blocks(self, identity: Identity, live: ParameterSet, target: ParameterSet
-                         ) -> list[tuple[int, list[int]]]:
-        """(offset, registers) chunks of the geometry staging bank this controller takes."""
-        words = target.to_words()
+    def _geometry_parts(self, identity: Identity, live: np.ndarray, target: np.ndarray) -> list[str] | None:
+        """The parts this device takes (None: all it holds); CapabilityError if the set changes one it does not."""
         if identity.offsets_only:
-            if not np.array_equal(live.to_vector()[:L0_INDEX], target.to_vector()[:L0_INDEX]):
+            if not np.array_equal(live[:36], target[:36]):
                 raise CapabilityError("offsets-only controller: this set changes a/b joint coordinates; only "
                                       "the six leg offsets l0 can be written; nothing written")
-            first = L0_INDEX * REGISTERS_PER_FLOAT
-            return [(k, words[k:min(k + self.chunk_registers, first + L0_REGISTERS)])
-                    for k in range(first, first + L0_REGISTERS, self.chunk_registers)]
+            return ["l0"]
         if Capability.FULL_GEOMETRY in identity.capabilities:
-            return [(k, words[k:k + self.chunk_registers]) for k in range(0, PARAMETER_REGISTERS,
-                                                                             self.chunk_registers)]
+            return None
         raise CapabilityError(f"controller capabilities {identity.capabilities!r} allow no parameter writes")
 
     @staticmethod
@@ -320,48 +450,26 @@ class ControllerParams(ParameterInterface):
                compensation: CompensationBlock | None = None) -> UploadRecord:
         """Write, verify and commit a parameter set, and with it a compensation block when one is given (see the
         module docstring); save=True also saves them. Without a block the controller keeps its own."""
-        target = params if isinstance(params, ParameterSet) else ParameterSet.from_vector(params)
-        target = target.as_float32()
-        words = target.to_words()
+        target = self.device_set(params)
+        vector = target.to_vector()
+        words = geometry_words(self.map, vector)
         comp_words = None if compensation is None else compensation.as_float32().to_words()
-        record, identity = self._begin("upload")
+        record, identity, live = self._begin("upload")
         record.params_sha256 = target.sha256()
-        record.params_crc32 = f"{target.crc32():08x}"
+        record.params_crc32 = f"{crc32_of_words(self._flat(words)):08x}"
         try:
-            blocks = self._geometry_blocks(identity, self.read_live(), target)
-            comp_blocks: list[tuple[int, list[int]]] = []
+            if save and "save" not in (self.map.commands.codes() if self.map.commands else {}):
+                raise CapabilityError(f"register map {self.map.device.name} has no save command: upload without "
+                                      "save; nothing written")
+            parts = self._geometry_parts(identity, self._vector(live), vector)
             if compensation is not None and comp_words is not None:
                 self._check_compensation(identity, compensation)
-                record.compensation_sha256 = _sha(comp_words)
+                record.compensation_sha256 = sha_of_words(comp_words)
                 record.compensation_crc32 = f"{crc32_of_words(comp_words):08x}"
-                comp_blocks = [(k, comp_words[k:k + self.chunk_registers])
-                               for k in range(0, len(comp_words), self.chunk_registers)]
-            record.staged_registers = sum(len(b) for _, b in blocks) + sum(len(b) for _, b in comp_blocks)
-            self._command(record, ParamCommand.OPEN_STAGING)
-            for offset, block in blocks:
-                self._write(record, STAGING_BANK.address + offset, block)
-            for offset, block in comp_blocks:
-                self._write(record, COMP_STAGING_BANK.address + offset, block)
-            header = [record.staged_registers, *split_u32(target.crc32())]
-            if comp_words is not None:
-                header += split_u32(crc32_of_words(comp_words))
-            self._write(record, STAGED_LENGTH_REG.address, header)
-            self._compare(record, "staging", self._read_block(STAGING_BANK), words)
-            if comp_words is not None:
-                self._compare(record, "compensation staging", self._read_block(COMP_STAGING_BANK), comp_words)
-            self._command(record, ParamCommand.COMMIT)
-            live_after = self._read_block(LIVE_BANK)
-            live_crc = join_u32(self._read_block(LIVE_CRC32_REG))
-            record.live_after_sha256 = _sha(live_after)
-            record.live_readback_match = live_after == words and live_crc == target.crc32()
-            if comp_words is not None:
-                comp_after = self._read_block(COMP_LIVE_BANK)
-                comp_crc = join_u32(self._read_block(LIVE_COMP_CRC32_REG))
-                record.compensation_readback_match = comp_after == comp_words and comp_crc == crc32_of_words(
-                    comp_words)
-                record.live_readback_match = record.live_readback_match and record.compensation_readback_match
-            if not record.live_readback_match:
-                raise ReadbackMismatch("live set read back after COMMIT differs from the uploaded set")
+            if self.map.staged:
+                self._staged_upload(record, words, parts, comp_words)
+            else:
+                self._direct_upload(record, live, words, parts, comp_words)
             if save:
                 self._save_steps(record, identity)
         except ParamsError as err:
@@ -370,30 +478,38 @@ class ControllerParams(ParameterInterface):
         self._finish(record, None, "committed")
         return record
 
-    @staticmethod
-    def _compare(record: UploadRecord, what: str, read: list[int], written: list[int]) -> None:
-        match = read == written
-        if what == "staging":
-            record.staging_readback_match = match
-        else:
-            record.staging_readback_match = bool(record.staging_readback_match) and match
-        if not match:
-            bad = [k for k, (a, b) in enumerate(zip(read, written, strict=True)) if a != b]
-            raise ReadbackMismatch(f"{what} read-back differs at registers {bad[:8]}; not committed")
+    def _check_live(self, record: UploadRecord, flat: list[int], comp_words: list[int] | None, message: str) -> None:
+        """Read live (and its checksum register) back: it must be ``flat`` (and the block ``comp_words``)."""
+        live_parts = self._bank_parts("live")
+        live_crc = self._checksum("live")
+        record.live_after_sha256 = sha_of_vector(self._vector(live_parts))
+        record.live_readback_match = self._flat(live_parts) == flat and live_crc in (None, crc32_of_words(flat))
+        if comp_words is not None:
+            comp_crc = self._checksum("live", compensation=True)
+            record.compensation_readback_match = self._comp_read("live") == comp_words and comp_crc in (
+                None, crc32_of_words(comp_words))
+            record.live_readback_match = record.live_readback_match and record.compensation_readback_match
+        if not record.live_readback_match:
+            raise ReadbackMismatch(message)
 
     def _save_steps(self, record: UploadRecord, identity: Identity) -> None:
-        self._command(record, ParamCommand.SAVE)
-        record.saved_readback_match = self._read_block(SAVED_BANK) == self._read_block(LIVE_BANK)
-        if identity.compensation:
-            record.saved_readback_match = record.saved_readback_match and (
-                self._read_block(COMP_SAVED_BANK) == self._read_block(COMP_LIVE_BANK))
-        if not record.saved_readback_match:
+        self._command(record, "save")
+        m = self.map
+        checks = []
+        if all(p.banks["saved"] is not None for p in m.parts()):
+            checks.append(self._flat(self._bank_parts("saved")) == self._flat(self._bank_parts("live")))
+        elif m.checksum is not None and m.checksum.saved is not None:
+            checks.append(self._checksum("saved") == crc32_of_words(self._flat(self._bank_parts("live"))))
+        if identity.compensation and m.compensation is not None and m.compensation.saved is not None:
+            checks.append(self._comp_read("saved") == self._comp_read("live"))
+        record.saved_readback_match = all(checks) if checks else None
+        if checks and not all(checks):
             raise ReadbackMismatch("non-volatile set read back after SAVE differs from the live set")
         record.saved = True
 
     def save(self) -> UploadRecord:
         """Copy the live set (and block) to non-volatile memory (controller DISABLED) and verify it."""
-        record, identity = self._begin("save")
+        record, identity, _ = self._begin("save")
         try:
             self._save_steps(record, identity)
         except ParamsError as err:
@@ -402,26 +518,10 @@ class ControllerParams(ParameterInterface):
         self._finish(record, None, "saved")
         return record
 
-    def rollback(self) -> UploadRecord:
-        """Swap live and backup, geometry and block together (controller DISABLED): undoes the last commit."""
-        record, identity = self._begin("rollback")
-        try:
-            backup = self._read_block(BACKUP_BANK)
-            comp_backup = self._read_block(COMP_BACKUP_BANK) if identity.compensation else None
-            self._command(record, ParamCommand.ROLLBACK)
-            live_after = self._read_block(LIVE_BANK)
-            record.live_after_sha256 = _sha(live_after)
-            record.params_sha256 = _sha(backup)
-            record.params_crc32 = f"{crc32_of_words(backup):08x}"
-            record.live_readback_match = live_after == backup
-            if comp_backup is not None:
-                record.compensation_sha256 = _sha(comp_backup)
-                record.compensation_readback_match = self._read_block(COMP_LIVE_BANK) == comp_backup
-                record.live_readback_match = record.live_readback_match and record.compensation_readback_match
-            if not record.live_readback_match:
-                raise ReadbackMismatch("live set after ROLLBACK is not the former backup")
-        except ParamsError as err:
-            self._finish(record, err)
-            raise
-        self._finish(record, None, "rolled_back")
-        return record
+    def rollback(self, previous: ParameterSet | None = None) -> UploadRecord:
+        """Put the set in use before the last upload back (controller DISABLED). Staged maps: the ROLLBACK command
+        swaps live and backup, geometry and block together. Direct maps: ``modbus_direct.py`` (the device's backup
+        registers, else ``previous``, else the set this driver replaced in its last upload)."""
+        if not self.map.staged:
+            return self._direct_rollback(previous)
+        return self._staged_rollback()

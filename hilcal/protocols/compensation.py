@@ -14,7 +14,9 @@ table(s) interpolates linearly between ``table_points`` equally spaced points fr
 ``table_end_mm`` of s and holds its end values outside. A setpoint is a length: the controller servos the raw
 stroke until the corrected length equals it. Layout (16-bit registers; float32 in ABCD order as the geometry):
 FORMAT (u16), TABLE_POINTS (u16), REFERENCE_TEMPERATURE_C (f32), then per leg 1..6 the seven scalars of
-``LEG_FIELDS`` and ``MAX_TABLE_POINTS`` table values (unused ones 0). See docs/protocols.md.
+``LEG_FIELDS`` and ``MAX_TABLE_POINTS`` table values (unused ones 0). Where the block's four banks (live, staging,
+backup, saved) are is the register map's ``[compensation]`` section (``hilcal.protocols.modbus_map``). See
+docs/protocols.md.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from hilcal.protocols.registers import N_LEGS, Access, Register, crc32_of_words, floats_from_words, words_from_floats
+from hilcal.protocols.registers import N_LEGS, crc32_of_words, floats_from_words, words_from_floats
 
 FORMAT = 1
 """Layout version of the block (register FORMAT)."""
@@ -34,14 +36,6 @@ LEG_FIELDS = ("scale_ppm", "backlash_mm", "compliance_mm_per_kn", "compliance_mm
 LEG_FLOATS = len(LEG_FIELDS) + MAX_TABLE_POINTS
 HEADER_REGISTERS = 4
 BLOCK_REGISTERS = HEADER_REGISTERS + N_LEGS * LEG_FLOATS * 2
-COMP_LIVE_BANK = Register("COMP_LIVE", 0x1000, BLOCK_REGISTERS, Access.READ, "compensation block in use")
-COMP_STAGING_BANK = Register("COMP_STAGING", 0x2000, BLOCK_REGISTERS, Access.READ_WRITE,
-                             "compensation block being uploaded")
-COMP_BACKUP_BANK = Register("COMP_BACKUP", 0x3000, BLOCK_REGISTERS, Access.READ,
-                            "live compensation block before the last commit (zeros: none)")
-COMP_SAVED_BANK = Register("COMP_SAVED", 0x4000, BLOCK_REGISTERS, Access.READ,
-                           "compensation block in non-volatile memory")
-COMPENSATION_BANKS = (COMP_LIVE_BANK, COMP_STAGING_BANK, COMP_BACKUP_BANK, COMP_SAVED_BANK)
 DEFAULT_REFERENCE_TEMPERATURE_C = 20.0
 """ISO 1: lengths are stated at 20 °C."""
 

@@ -1,15 +1,13 @@
-"""Modbus register map of the servo controller's parameter interface, as data.
+"""The controller's Modbus parameter interface, what stays code: the set's shape and bounds, the capability bits,
+command and status codes, Modbus limits and the float32 ABCD word helpers of hilcal's own register map.
 
-All registers are holding registers (function codes 3 read, 6 write single, 16 write multiple), 0-based
-protocol addresses. A parameter set is 42 IEEE-754 float32 values in mm, each in two registers, high word
-first and each word big-endian ("ABCD"). Order: a (leg 1 x, y, z, leg 2 x, y, z ... leg 6 z), b (same),
-l0 (legs 1..6). CRC-32 (``hilcal.protocols.checksums.crc32_ieee``) is taken over the 168 bytes of the 84
-registers, each register high byte first. See docs/protocols.md for the upload transaction.
-
-Register-map version 1.1 adds the COMPENSATION capability: a compensation block (``hilcal.protocols.compensation``)
-with its own four banks, staged, committed, backed up, saved and rolled back in the same transaction as the
-geometry, and the controller's own leg-force and leg-temperature readings. A 1.0 host that writes only the geometry
-leaves the block as it is.
+Where each register lives is data: the map files of ``hilcal.protocols.modbus_map`` (hilcal's own register map 1.1
+is ``modbus_maps/hilcal-1.1.toml``). In that map a parameter set is 42 IEEE-754 float32 values in mm, each in two
+registers, high word first and each word big-endian ("ABCD"). Order: a (leg 1 x, y, z, leg 2 x, y, z ... leg 6 z),
+b (same), l0 (legs 1..6). CRC-32 (``hilcal.protocols.checksums.crc32_ieee``) is taken over the 168 bytes of the 84
+registers, each register high byte first. See docs/protocols.md for the upload transaction. Register-map version 1.1
+adds the COMPENSATION capability: a compensation block (``hilcal.protocols.compensation``) with its own four banks in
+the same transaction as the geometry, and the controller's own leg-force and leg-temperature readings.
 """
 
 from __future__ import annotations
@@ -17,7 +15,6 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Sequence
-from dataclasses import dataclass
 from enum import IntEnum, IntFlag
 
 from hilcal.protocols.checksums import crc32_ieee
@@ -27,13 +24,16 @@ PARAMETER_COUNT = 42
 REGISTERS_PER_FLOAT = 2
 PARAMETER_REGISTERS = PARAMETER_COUNT * REGISTERS_PER_FLOAT
 WORD_ORDER = "ABCD"
-"""float32 byte order on the wire: high word first, each word big-endian."""
+"""float32 byte order on the wire of hilcal's own map: high word first, each word big-endian."""
 
 MAX_READ_REGISTERS = 125
+"""Most registers one FC 3 request may read (MODBUS Application Protocol v1.1b3, 6.3: quantity 1 to 125)."""
 MAX_WRITE_REGISTERS = 123
+"""Most registers one FC 16 request may write (MODBUS Application Protocol v1.1b3, 6.12: quantity 1 to 123)."""
 A_INDEX = 0
 B_INDEX = 18
 L0_INDEX = 36
+L0_REGISTERS = N_LEGS * REGISTERS_PER_FLOAT
 
 MAGIC = 0x4843
 """Value of the MAGIC register ("HC"): identifies a hilcal-compatible controller."""
@@ -53,108 +53,6 @@ A_B_LIMIT_MM = 10_000.0
 L0_MIN_MM = 1.0
 L0_MAX_MM = 20_000.0
 """Leg offsets (stroke-zero lengths) must lie in [L0_MIN_MM, L0_MAX_MM]."""
-
-
-class Access(IntEnum):
-    READ = 1
-    WRITE = 2
-    READ_WRITE = 3
-
-
-@dataclass(frozen=True)
-class Register:
-    """One register or a block of consecutive registers."""
-
-    name: str
-    address: int
-    count: int
-    access: Access
-    description: str
-
-    @property
-    def end(self) -> int:
-        """One past the last address of the block."""
-        return self.address + self.count
-
-
-MAGIC_REG = Register("MAGIC", 0x0000, 1, Access.READ, "0x4843 ('HC')")
-PROTOCOL_VERSION_REG = Register("PROTOCOL_VERSION", 0x0001, 1, Access.READ, "register-map version, major << 8 | minor")
-FIRMWARE_VERSION_REG = Register("FIRMWARE_VERSION", 0x0002, 1, Access.READ, "firmware version, major << 8 | minor")
-SERIAL_NUMBER_REG = Register("SERIAL_NUMBER", 0x0003, 2, Access.READ, "uint32, high word first")
-CAPABILITIES_REG = Register("CAPABILITIES", 0x0005, 1, Access.READ, "Capability bit field")
-PARAMETER_COUNT_REG = Register("PARAMETER_COUNT", 0x0006, 1, Access.READ, "number of float32 parameters (42)")
-CONTROLLER_STATE_REG = Register("CONTROLLER_STATE", 0x0010, 1, Access.READ, "ControllerState (same as CAN)")
-FAULT_CODE_REG = Register("FAULT_CODE", 0x0011, 1, Access.READ, "FaultCode (same as CAN)")
-PARAM_COMMAND_REG = Register("PARAM_COMMAND", 0x0020, 1, Access.WRITE, "ParamCommand; reads as 0")
-PARAM_STATUS_REG = Register("PARAM_STATUS", 0x0021, 1, Access.READ, "ParamStatus of the last parameter command")
-COMMIT_COUNTER_REG = Register("COMMIT_COUNTER", 0x0022, 1, Access.READ, "incremented by every commit and rollback")
-SAVE_COUNTER_REG = Register("SAVE_COUNTER", 0x0023, 1, Access.READ, "incremented by every save")
-STAGED_WRITTEN_REG = Register(
-    "STAGED_WRITTEN", 0x0024, 1, Access.READ, "distinct staging registers written since OPEN_STAGING"
-)
-LIVE_CRC32_REG = Register("LIVE_CRC32", 0x0028, 2, Access.READ, "CRC-32 of the live set, high word first")
-BACKUP_CRC32_REG = Register("BACKUP_CRC32", 0x002A, 2, Access.READ, "CRC-32 of the backup set (0 if none)")
-SAVED_CRC32_REG = Register("SAVED_CRC32", 0x002C, 2, Access.READ, "CRC-32 of the non-volatile set")
-STAGED_LENGTH_REG = Register(
-    "STAGED_LENGTH", 0x0030, 1, Access.READ_WRITE, "number of staging registers the host wrote in this transaction"
-)
-STAGED_CRC32_REG = Register(
-    "STAGED_CRC32", 0x0031, 2, Access.READ_WRITE, "CRC-32 of all 84 staging registers, high word first"
-)
-STAGED_COMP_CRC32_REG = Register(
-    "STAGED_COMP_CRC32", 0x0033, 2, Access.READ_WRITE,
-    "CRC-32 of the staged compensation block; required when a compensation staging register was written",
-)
-LIVE_COMP_CRC32_REG = Register("LIVE_COMP_CRC32", 0x0038, 2, Access.READ, "CRC-32 of the live compensation block")
-BACKUP_COMP_CRC32_REG = Register("BACKUP_COMP_CRC32", 0x003A, 2, Access.READ,
-                                 "CRC-32 of the backup compensation block (0 if none)")
-SAVED_COMP_CRC32_REG = Register("SAVED_COMP_CRC32", 0x003C, 2, Access.READ,
-                                "CRC-32 of the non-volatile compensation block")
-LEG_FORCES_REG = Register("LEG_FORCES", 0x0040, 12, Access.READ,
-                          "six float32: each leg's axial compression as the controller reads it, kN")
-LEG_TEMPERATURE_REG = Register("LEG_TEMPERATURE", 0x004C, 2, Access.READ,
-                               "float32: the leg temperature as the controller reads it, °C")
-LIVE_BANK = Register("LIVE", 0x0100, PARAMETER_REGISTERS, Access.READ, "parameters in use")
-STAGING_BANK = Register("STAGING", 0x0200, PARAMETER_REGISTERS, Access.READ_WRITE, "parameters being uploaded")
-BACKUP_BANK = Register("BACKUP", 0x0300, PARAMETER_REGISTERS, Access.READ, "live set before the last commit")
-SAVED_BANK = Register("SAVED", 0x0400, PARAMETER_REGISTERS, Access.READ, "set in non-volatile memory")
-
-REGISTER_MAP: tuple[Register, ...] = (
-    MAGIC_REG,
-    PROTOCOL_VERSION_REG,
-    FIRMWARE_VERSION_REG,
-    SERIAL_NUMBER_REG,
-    CAPABILITIES_REG,
-    PARAMETER_COUNT_REG,
-    CONTROLLER_STATE_REG,
-    FAULT_CODE_REG,
-    PARAM_COMMAND_REG,
-    PARAM_STATUS_REG,
-    COMMIT_COUNTER_REG,
-    SAVE_COUNTER_REG,
-    STAGED_WRITTEN_REG,
-    LIVE_CRC32_REG,
-    BACKUP_CRC32_REG,
-    SAVED_CRC32_REG,
-    STAGED_LENGTH_REG,
-    STAGED_CRC32_REG,
-    LIVE_BANK,
-    STAGING_BANK,
-    BACKUP_BANK,
-    SAVED_BANK,
-    STAGED_COMP_CRC32_REG,
-    LIVE_COMP_CRC32_REG,
-    BACKUP_COMP_CRC32_REG,
-    SAVED_COMP_CRC32_REG,
-    LEG_FORCES_REG,
-    LEG_TEMPERATURE_REG,
-)
-"""Every register but the compensation block's banks (``hilcal.protocols.compensation.COMPENSATION_BANKS``); those
-after SAVED exist only on a controller with the capability they belong to."""
-
-STAGING_L0_ADDRESS = STAGING_BANK.address + L0_INDEX * REGISTERS_PER_FLOAT
-"""First staging register of the leg offsets: the only writable part under OFFSETS_ONLY."""
-L0_REGISTERS = N_LEGS * REGISTERS_PER_FLOAT
 
 
 class Capability(IntFlag):

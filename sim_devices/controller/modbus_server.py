@@ -1,4 +1,5 @@
-"""The simulated controller's Modbus parameter interface on real transports: Modbus TCP and Modbus RTU on a pty.
+"""The simulated controller's Modbus parameter interface on real transports: Modbus TCP and Modbus RTU on a pty, at
+the addresses of a register map (``register_map``; default hilcal's own ``hilcal-1.1``).
 
 Small servers of our own around ``ModbusProtocol`` (see ``modbus_frames.py`` for why not pymodbus' server).
 """
@@ -14,6 +15,7 @@ import time
 
 import structlog
 
+from hilcal.protocols.modbus_map import RegisterMap
 from sim_devices.controller.modbus_faults import ModbusFaultInjector
 from sim_devices.controller.modbus_frames import (
     MBAP_BYTES,
@@ -44,11 +46,12 @@ class ModbusTcpServer:
         port: int = 0,
         device_id: int | None = None,
         faults: ModbusFaultInjector | None = None,
+        register_map: RegisterMap | None = None,
     ) -> None:
         self.controller = controller
         self.faults = faults or ModbusFaultInjector(controller.config.modbus_faults)
         self.protocol = ModbusProtocol(
-            ControllerRegisterMap(controller), device_id or controller.config.device_id, self.faults
+            ControllerRegisterMap(controller, register_map), device_id or controller.config.device_id, self.faults
         )
         self._address = (host, port)
         self._port = port
@@ -184,11 +187,12 @@ class ModbusRtuServer:
         *,
         device_id: int | None = None,
         faults: ModbusFaultInjector | None = None,
+        register_map: RegisterMap | None = None,
     ) -> None:
         self.controller = controller
         self.faults = faults or ModbusFaultInjector(controller.config.modbus_faults)
         self.device_id = device_id or controller.config.device_id
-        self.protocol = ModbusProtocol(ControllerRegisterMap(controller), self.device_id, self.faults)
+        self.protocol = ModbusProtocol(ControllerRegisterMap(controller, register_map), self.device_id, self.faults)
         self.crc_errors = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
