@@ -21,7 +21,10 @@ Example::
     channel = "can0"
     bitrate = 500000
 
-    [modbus]                           # TCP: host/port; RTU: serial_port/baudrate
+    [controller]                       # procedures.controller_section: kind = "hilcal" (the default: [can] with
+    kind = "hilcal"                    # hilcal's message set and [modbus]) or "canopen" (EDS, node ids, mapping)
+
+    [modbus]                           # TCP: host/port; RTU: serial_port/baudrate (kind = "hilcal" only)
     host = "192.168.10.20"
     port = 502
     device_id = 1
@@ -83,12 +86,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from drivers.cmm.base import ProbingConfig, as_transform
 from drivers.cmm.serial import SerialCmm, SerialCmmConfig
 from drivers.cmm.types import DEFAULT_ALIGNMENT_DEG, DEFAULT_ALIGNMENT_MM
+from drivers.controller.base import ControllerInterface, ParameterInterface
 from drivers.controller.hilcal_can import ControllerCan
 from drivers.controller.modbus import ControllerParams
 from drivers.instrument import CmmPoseInstrument, PoseInstrument, TrackerPoseInstrument
 from drivers.tracker.emscon import EmsconTracker
 from hilcal.protocols.toml_text import toml_lines
 from hilcal.robot import Robot, RobotFileError, load_robot
+from procedures.controller_section import ControllerSection, HilcalControllerSection, open_canopen, resolve_paths
 from procedures.link_guard import LinksSection
 from procedures.signoff import AcceptanceSection, CmmIdentity
 from procedures.timing import TimingSection
@@ -194,7 +199,8 @@ class StationConfig(_Strict):
     name: str | None = Field(default=None, min_length=1, max_length=100, description="this calibration station")
     machine: MachineSection = Field(default_factory=MachineSection)
     can: CanSection
-    modbus: ModbusSection
+    controller: ControllerSection = Field(default_factory=HilcalControllerSection)
+    modbus: ModbusSection | None = None
     instrument: InstrumentSection = Field(default_factory=InstrumentSection)
     cmm: CmmSection | None = None
     tracker: TrackerSection | None = None
@@ -208,6 +214,10 @@ class StationConfig(_Strict):
 
     @model_validator(mode="after")
     def _its_instrument(self) -> StationConfig:
+        if self.controller.kind == "hilcal" and self.modbus is None:
+            raise ValueError("a station with hilcal's own controller ([controller] kind = \"hilcal\", the default) "
+                             "needs a [modbus] section (its parameter interface); a CANopen controller says "
+                             "[controller] kind = \"canopen\"")
         if self.instrument.kind == "cmm" and self.cmm is None:
             raise ValueError("a station measured with a CMM ([instrument] kind = \"cmm\", the default) needs a [cmm] "
                              "section (url, alignment); one with a laser tracker says [instrument] kind = \"tracker\"")
@@ -267,6 +277,7 @@ def load_station(path: str | Path) -> StationConfig:
         value = data.get(key)
         if isinstance(value, str) and value and not Path(value).is_absolute():
             data[key] = str(base / value)
+    resolve_paths(data, base)
     url = data["records"].get("url") if isinstance(data.get("records"), dict) else None
     if isinstance(url, str) and url and "://" not in url and not Path(url).is_absolute():
         data["records"]["url"] = str(base / url)
@@ -320,8 +331,10 @@ class Devices:
 
     station: StationConfig
     robot: Robot
-    controller: ControllerCan
-    params: ControllerParams
+    controller: ControllerInterface
+    """``ControllerCan`` (hilcal's message set) or ``CanopenController``."""
+    params: ParameterInterface
+    """``ControllerParams`` (Modbus) or ``CanopenParams`` (the same CANopen link as the controller)."""
     cmm: SerialCmm | None
     cmm_alignment: np.ndarray | None
     """(4, 4) T_cmm<-base from the station file (None: the station measures with a laser tracker)."""
@@ -345,40 +358,19 @@ class Devices:
 
 
 def open_devices(station: StationConfig, *, check: bool = True) -> Devices:
-    """Open the controller (CAN), its parameter interface (Modbus) and the measuring instrument of a station.
+    """Open the controller (hilcal's CAN message set, or CANopen), its parameter interface (Modbus, or the CANopen
+    controller's own) and the measuring instrument of a station.
 
-    With ``check`` the controller must send a heartbeat within ``motion.connect_timeout_s`` and the Modbus
-    device must identify as a compatible controller. DeviceOpenError (naming the device) if anything fails;
+    With ``check`` the controller must send a heartbeat within ``motion.connect_timeout_s`` and the parameter
+    interface must identify as a compatible controller. DeviceOpenError (naming the device) if anything fails;
     whatever was opened before is closed again.
     """
     try:
         robot = load_robot(station.robot)
     except RobotFileError as err:
         raise DeviceOpenError(f"robot: {err}") from None
-    motion = station.motion
     with ExitStack() as stack:
-        try:
-            controller = ControllerCan(
-                station.can.bus_config(),
-                robot,
-                heartbeat_timeout_s=motion.heartbeat_timeout_s,
-                ack_timeout_s=motion.ack_timeout_s,
-                position_tolerance_mm=motion.position_tolerance_mm,
-            )
-            stack.callback(controller.close)
-            if check:
-                controller.wait_for_heartbeat(motion.connect_timeout_s)
-        except Exception as err:
-            raise DeviceOpenError(f"controller (CAN {station.can.bus_config()}): {err}") from err
-        mb = station.modbus
-        try:
-            params = ControllerParams(mb.host, mb.port, serial_port=mb.serial_port, baudrate=mb.baudrate,
-                                      device_id=mb.device_id, timeout_s=mb.timeout_s)
-            stack.callback(params.close)
-            if check:
-                params.read_identity()
-        except Exception as err:
-            raise DeviceOpenError(f"controller parameters (Modbus {mb.host or mb.serial_port}): {err}") from err
+        controller, params = _open_controller(station, robot, stack, check)
         tracker, cmm, alignment = None, None, None
         t = station.measuring_tracker()
         try:
@@ -401,8 +393,49 @@ def open_devices(station: StationConfig, *, check: bool = True) -> Devices:
             raise DeviceOpenError(f"{what} ({station.instrument_address()}): {err}") from err
         devices = Devices(station, robot, controller, params, cmm, alignment, instrument, tracker, stack.pop_all())
     log.info("station_devices_opened", robot=robot.name, can=station.can.bus_config().get("channel"),
+             controller=station.controller.kind,
              modbus=params.endpoint, instrument=station.instrument.kind, address=station.instrument_address())
     return devices
+
+
+def _open_controller(station: StationConfig, robot: Robot, stack: ExitStack, check: bool
+                     ) -> tuple[ControllerInterface, ParameterInterface]:
+    """The controller and its parameter interface of the station's [controller] kind (closed by ``stack``)."""
+    motion = station.motion
+    if station.controller.kind == "canopen":
+        try:
+            controller, params = open_canopen(station.controller, station.can.bus_config(), robot,
+                                              heartbeat_timeout_s=motion.heartbeat_timeout_s,
+                                              ack_timeout_s=motion.ack_timeout_s,
+                                              position_tolerance_mm=motion.position_tolerance_mm)
+            stack.callback(controller.close)
+            if check:
+                controller.wait_for_heartbeat(motion.connect_timeout_s)
+                params.read_identity()
+        except Exception as err:
+            raise DeviceOpenError(f"controller (CANopen {station.controller.eds_path().name}, node(s) "
+                                  f"{station.controller.nodes()}, CAN {station.can.bus_config()}): {err}") from err
+        return controller, params
+    try:
+        controller = ControllerCan(station.can.bus_config(), robot, heartbeat_timeout_s=motion.heartbeat_timeout_s,
+                                   ack_timeout_s=motion.ack_timeout_s,
+                                   position_tolerance_mm=motion.position_tolerance_mm)
+        stack.callback(controller.close)
+        if check:
+            controller.wait_for_heartbeat(motion.connect_timeout_s)
+    except Exception as err:
+        raise DeviceOpenError(f"controller (CAN {station.can.bus_config()}): {err}") from err
+    mb = station.modbus
+    assert mb is not None  # the station's validator
+    try:
+        params = ControllerParams(mb.host, mb.port, serial_port=mb.serial_port, baudrate=mb.baudrate,
+                                  device_id=mb.device_id, timeout_s=mb.timeout_s)
+        stack.callback(params.close)
+        if check:
+            params.read_identity()
+    except Exception as err:
+        raise DeviceOpenError(f"controller parameters (Modbus {mb.host or mb.serial_port}): {err}") from err
+    return controller, params
 
 
 BUILT_IN_ROBOT = "the built-in paper Table 1 robot"

@@ -11,7 +11,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from types import TracebackType
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -200,6 +200,9 @@ class ParameterInterface(ABC):
 
     endpoint: str
     device_id: int
+    has_backup: bool = True
+    """The device keeps the set before the last commit (``rollback`` needs nothing); False: ``rollback`` needs the
+    record of the last upload, whose ``previous_params`` it writes back."""
 
     @abstractmethod
     def read_identity(self) -> Identity:
@@ -235,8 +238,16 @@ class ParameterInterface(ABC):
         """Copy the live set to non-volatile memory and verify it."""
 
     @abstractmethod
-    def rollback(self) -> UploadRecord:
-        """Put the set in use before the last commit back."""
+    def rollback(self, last_upload: UploadRecord | None = None) -> UploadRecord:
+        """Put the set in use before the last commit back (a device without a backup bank: ``last_upload``'s
+        previous set, from the records)."""
+
+    def describe(self) -> dict[str, Any]:
+        """Identity, state, live geometry and checksum as plain data (``hilcal check``); a checksum is None where
+        the device has none. Raises the driver's ParamsError where a read fails."""
+        identity = self.read_identity()
+        return {"endpoint": self.endpoint, "identity": identity.as_dict(), "state": self.read_state().name,
+                "geometry": self.read_live().model_dump(), "checksum": None}
 
     @abstractmethod
     def close(self) -> None:

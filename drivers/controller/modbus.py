@@ -402,8 +402,9 @@ class ControllerParams(ParameterInterface):
         self._finish(record, None, "saved")
         return record
 
-    def rollback(self) -> UploadRecord:
-        """Swap live and backup, geometry and block together (controller DISABLED): undoes the last commit."""
+    def rollback(self, last_upload: UploadRecord | None = None) -> UploadRecord:
+        """Swap live and backup, geometry and block together (controller DISABLED): undoes the last commit
+        (``last_upload`` is not needed: the controller keeps the backup)."""
         record, identity = self._begin("rollback")
         try:
             backup = self._read_block(BACKUP_BANK)

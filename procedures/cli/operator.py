@@ -160,15 +160,23 @@ def _print_prompt_detail(prompt) -> None:
 
 
 def _params_client(station: Path):
-    from drivers.controller.modbus import ControllerParams
+    """The station's parameter interface: Modbus, or the CANopen controller's (exit 2 for a bad station file, 3 when
+    the device cannot be opened)."""
+    from hilcal.robot import RobotFileError
+    from procedures.controller_section import open_parameters
     from procedures.station import StationConfigError, load_station
 
     try:
-        mb = load_station(station).modbus
+        config = load_station(station)
     except StationConfigError as e:
         fail(str(e))
-    return ControllerParams(mb.host, mb.port, serial_port=mb.serial_port, baudrate=mb.baudrate,
-                            device_id=mb.device_id, timeout_s=mb.timeout_s)
+    try:
+        return open_parameters(config)
+    except RobotFileError as e:
+        fail(str(e))
+    except Exception as e:  # the CAN interface or the device did not answer
+        err.print(f"[bold red]cannot open the controller:[/] {escape(str(e))}", highlight=False, markup=True)
+        raise typer.Exit(3) from None
 
 
 def _records(station: Path, records: str | None):
@@ -203,14 +211,15 @@ def _identity(station: Path) -> dict[str, str | None]:
 def upload(
     params_file: Annotated[Path, typer.Argument(help="parameter set JSON {a_mm, b_mm, l0_mm} with an optional "
                                                 "compensation block (a run's controller_set.json)")],
-    station: Annotated[Path, typer.Option(help="station TOML (its \\[modbus] section is used)")],
+    station: Annotated[Path, typer.Option(help="station TOML (its \\[controller] and \\[modbus] or \\[can] "
+                                          "sections are used)")],
     save: Annotated[bool, typer.Option(help="also save to non-volatile memory")] = False,
     yes: Annotated[bool, typer.Option("--yes", help="do not ask for confirmation")] = False,
     records: RecordsOption = None,
     operator: Annotated[str | None, typer.Option(help="name recorded with the upload")] = None,
 ) -> None:
     """Stand-alone controller parameter upload: validate, show the diff, confirm, upload, read back, record."""
-    from drivers.controller.modbus import ParamsError
+    from drivers.controller.parameter_sets import ParamsError
     from procedures.records import ParameterFileError, UploadDeclined, format_diff, upload_parameter_file
 
     identity = _identity(station)
@@ -236,12 +245,14 @@ def upload(
 
 
 def rollback(
-    station: Annotated[Path, typer.Option(help="station TOML (its \\[modbus] section is used)")],
+    station: Annotated[Path, typer.Option(help="station TOML (its \\[controller] and \\[modbus] or \\[can] "
+                                          "sections are used)")],
     records: RecordsOption = None,
     operator: Annotated[str | None, typer.Option(help="name recorded with the rollback")] = None,
 ) -> None:
-    """Restore the controller's previous parameter set (its backup bank), and record it."""
-    from drivers.controller.modbus import ParamsError
+    """Restore the controller's previous parameter set (its backup bank; a CANopen controller: the set before its last
+    upload, from the records), and record it."""
+    from drivers.controller.parameter_sets import ParamsError
     from procedures.records import rollback_controller
 
     identity = _identity(station)
