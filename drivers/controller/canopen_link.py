@@ -33,6 +33,8 @@ HEARTBEAT_OBJECT = (0x1017, 0)
 HEARTBEAT_FACTOR = 2.5
 """A node is lost once its heartbeat is this many producer periods old (and at least the station's timeout)."""
 SLCAN_READ_TIMEOUT_S = 0.02
+NOTIFIER_CYCLE_S = 0.05
+"""The bus reader's receive timeout: how long closing the link waits for it (canopen's default is 1 s)."""
 NMT_STATES = {0: "BOOT-UP", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
 
 
@@ -95,6 +97,7 @@ class CanopenLink:
         self.emergencies: list[Emergency] = []
         self._closed = False
         self.network = canopen.Network(bus if bus is not None else open_bus(config))
+        self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
         self.network.connect()
         self.remote: dict[int, canopen.RemoteNode] = {}
         try:

@@ -294,7 +294,7 @@ class CanopenMapping(_Strict):
         return {int(k, 0): v for k, v in self.emcy_codes.items()}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Slot:
     """One resolved numeric object: where it is, its type, and how a value in the group's unit becomes its raw."""
 
@@ -334,7 +334,7 @@ class Slot:
         return f"{self.key} {self.ref.on(self.node)} ({self.variable.qualname})"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TableSlot(Slot):
     """A DOMAIN object holding a table as REAL32 values, little-endian; its raw value is the bytes."""
 
