@@ -37,6 +37,8 @@ LOAD_SIGNATURE = 0x64616F6C
 ERROR_HISTORY = 8
 NOT_STORED = frozenset({0x1003, 0x1010, 0x1011})
 SYNC_DEFAULT = 0x80
+BOOT_TIME_S = 0.02
+"""How long a reset keeps the node silent before its boot-up message (real time)."""
 
 
 class NmtState(IntEnum):
@@ -98,6 +100,7 @@ class SimulatedNode:
         self._next_heartbeat = 0.0
         self._emcy_queue: list[bytes] = []
         self._emcy_last = -1e9
+        self._pending_reset: tuple[float, bool] | None = None
         self.now = 0.0
 
     # ------------------------------------------------------------------ object access
@@ -166,6 +169,8 @@ class SimulatedNode:
         """Timers: heartbeat, delayed EMCY, event-driven TPDOs, then the device's own."""
         self.now = now
         if self.nmt is NmtState.INITIALISING:
+            if self._pending_reset is not None and now >= self._pending_reset[0]:
+                self._boot(now)
             return
         if self._heartbeat_s > 0 and now >= self._next_heartbeat:
             self.send(0x700 + self.id, bytes([self.nmt]))
@@ -182,11 +187,20 @@ class SimulatedNode:
     def power_on(self, now: float) -> None:
         """Power-up: initialise every object from the defaults and the non-volatile memory, boot up."""
         self._reset(now, communication_only=False)
+        self._boot(now)
 
     def _reset(self, now: float, communication_only: bool) -> None:
+        """Start a reset: the node goes silent for BOOT_TIME_S (``tick`` finishes it), as a device's boot takes."""
         old = self.nmt
         self.nmt = NmtState.INITIALISING
         self.nmt_changed(old, self.nmt)
+        self._pending_reset = (now + BOOT_TIME_S, communication_only)
+
+    def _boot(self, now: float) -> None:
+        """Finish a reset: load the objects, send the boot-up message, enter PRE-OPERATIONAL."""
+        assert self._pending_reset is not None
+        communication_only = self._pending_reset[1]
+        self._pending_reset = None
         if communication_only:
             for index in [i for i in self.local.data_store if 0x1000 <= i <= 0x1FFF]:
                 del self.local.data_store[index]
