@@ -294,7 +294,8 @@ def save_station(station: StationConfig, path: str | Path) -> None:
     Path(path).write_text(station_to_toml(station))
 
 
-def station_from_channels(channels: dict[str, Any], robot_path: str | Path | None = None) -> StationConfig:
+def station_from_channels(channels: dict[str, Any], robot_path: str | Path | None = None,
+                          controller: dict[str, Any] | None = None) -> StationConfig:
     """The station of a running simulator (``SimHandle.channels()`` / the JSON line of ``hilcal sim --json``).
 
     The robot is ``robot_path``, else the simulator's robot file, else the built-in robot; its name must be
@@ -313,7 +314,7 @@ def station_from_channels(channels: dict[str, Any], robot_path: str | Path | Non
             f"{path or '<built-in>'} is {robot.name!r}"
         )
     try:
-        data = {"robot": path, "can": channels["can"], "modbus": channels["modbus"]}
+        data = {"robot": path, "can": channels["can"], "modbus": channels.get("modbus"), "controller": controller}
         if channels.get("instrument") == "tracker":
             data.update(instrument={"kind": "tracker"}, tracker=tracker_from_channels(channels))
         else:

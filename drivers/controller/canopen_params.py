@@ -22,7 +22,7 @@ import structlog
 
 from drivers.controller.base import ParameterInterface
 from drivers.controller.canopen_link import CanopenLink, SdoFailure
-from drivers.controller.canopen_mapping import Slot, drive_state
+from drivers.controller.canopen_mapping import Slot, TableSlot, drive_state
 from drivers.controller.canopen_resolved import GEOMETRY_PARTS, Resolved
 from drivers.controller.parameter_sets import (
     CapabilityError,
@@ -160,8 +160,18 @@ class CanopenParams(ParameterInterface):
             return ControllerState.DISABLED
         return ControllerState.ENABLED
 
-    def _raws(self, slots: Sequence[Slot]) -> list[tuple[Slot, int | float]]:
-        return [(s, self._read(s)) for s in slots]
+    def _raws(self, slots: Sequence[Slot]) -> list[tuple[Slot, Any]]:
+        """Each slot's raw value; a table is not read while the table points object says 0 (empty)."""
+        out: list[tuple[Slot, Any]] = []
+        points = None
+        for s in slots:
+            if isinstance(s, TableSlot) and points == 0:
+                out.append((s, b""))
+                continue
+            out.append((s, self._read(s)))
+            if s is self.map.table_points:
+                points = int(out[-1][1])
+        return out
 
     def _geometry_from(self, raws: dict[Slot, int | float]) -> ParameterSet:
         vector = self._nominal.copy()
@@ -343,7 +353,7 @@ class CanopenParams(ParameterInterface):
         try:
             for slot, raw in targets:
                 self._write(record.writes, slot, raw)
-            back = {s: self._read(s) for s, _ in targets}
+            back = dict(self._raws([s for s, _ in targets]))
             bad = [str(s) for s, raw in targets if not _same(s, back[s], raw)]
             record.live_readback_match = not bad
             if bad:
@@ -366,9 +376,9 @@ class CanopenParams(ParameterInterface):
     def _store(self, record: UploadRecord) -> None:
         if self.map.store is None:
             raise CapabilityError("this controller's mapping has no store object (controller.store)")
-        before = {s: self._read(s) for s in self.map.parameter_slots()}
+        before = dict(self._raws(self.map.parameter_slots()))
         self._write(record.writes, self.map.store, self.map.mapping.store.signature)
-        after = {s: self._read(s) for s in before}
+        after = dict(self._raws(list(before)))
         record.saved_readback_match = all(_same(s, after[s], before[s]) for s in before)
         if not record.saved_readback_match:
             raise ReadbackMismatch("the values changed while the device stored them")
@@ -385,7 +395,8 @@ class CanopenParams(ParameterInterface):
             except ParamsError:
                 ok = False
         try:
-            record.restored_readback_match = ok and all(_same(s, self._read(s), old[s]) for s in touched)
+            back = dict(self._raws(touched))
+            record.restored_readback_match = ok and all(_same(s, back[s], old[s]) for s in touched)
         except ParamsError:
             record.restored_readback_match = False
 

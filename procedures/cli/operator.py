@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+import functools
 from pathlib import Path
 from typing import Annotated
 
@@ -25,6 +26,12 @@ class InstrumentChoice(enum.StrEnum):
     tracker = "tracker"
 
 
+class ControllerChoice(enum.StrEnum):
+    hilcal = "hilcal"
+    canopen = "canopen"
+    canopen_cia402 = "canopen-cia402"
+
+
 RunRobotOption = Annotated[Path | None, typer.Option("--robot", help=(
     "robot TOML file; the station file's robot and the simulator's (--sim-config) must be the same robot, by content "
     "(refused before anything starts otherwise); default: theirs, else the built-in paper Table 1 robot"))]
@@ -41,6 +48,11 @@ def run(
                                                                 "laser tracker (default: the simulator config's, "
                                                                 "else the CMM); a station file names its own "
                                                                 "(\\[instrument] kind)")] = None,
+    controller: Annotated[ControllerChoice | None, typer.Option(help="with --sim: the simulated controller's "
+                                                                "protocol (hilcal's own, the HX-6 CANopen controller, "
+                                                                "or six CiA 402 drives; default: the simulator "
+                                                                "config's); a station file names its own "
+                                                                "(\\[controller] kind)")] = None,
     resume: Annotated[str | None, typer.Option(help="continue the interrupted run RUN_ID in --out")] = None,
     yes: Annotated[bool, typer.Option("--yes", help="unattended: answer every prompt yes")] = False,
     estimator: Annotated[EstimatorChoice, typer.Option(help="parameters to upload")] = EstimatorChoice.ls,
@@ -88,6 +100,9 @@ def run(
     if instrument is not None and (not sim or resume is not None):
         fail("--instrument chooses the simulated instrument of a new --sim run; a station file names its own "
              "([instrument] kind), and a resumed run keeps the one it started with")
+    if controller is not None and (not sim or resume is not None):
+        fail("--controller chooses the simulated controller of a new --sim run; a station file names its own "
+             "([controller] kind), and a resumed run keeps the one it started with")
     if not adaptive and (target_mm is not None or max_minutes is not None):
         fail("--target-mm and --max-minutes belong to an adaptive run: add --adaptive")
     if resume is not None and adaptive:
@@ -105,7 +120,9 @@ def run(
     request = RunRequest(out_dir=out_dir, sim=sim, station_path=station, sim_config=sim_config, resume=resume,
                          yes=yes, estimator=estimator.value, force=force, robot_path=robot, plan_path=plan,
                          instrument=None if instrument is None else instrument.value,
-                         seed=seed, records_path=records, operator=operator, sim_station=sim_station, timing=timing,
+                         seed=seed, records_path=records, operator=operator, timing=timing,
+                         sim_station=functools.partial(sim_station, controller=None if controller is None else
+                                                       controller.value, resume=resume is not None),
                          on_estimate=print_run_estimate, acceptance=None if acceptance is None else acceptance.value,
                          cycles=cycles, physics=physics is PhysicsChoice.on, on_prompt=_print_prompt_detail,
                          adaptive=adaptive_plan, on_adaptive_estimate=print_adaptive_estimate)
