@@ -377,7 +377,8 @@ class CanopenParams(ParameterInterface):
         if self.map.store is None:
             raise CapabilityError("this controller's mapping has no store object (controller.store)")
         before = dict(self._raws(self.map.parameter_slots()))
-        self._write(record.writes, self.map.store, self.map.mapping.store.signature)
+        for slot in self.map.stores:
+            self._write(record.writes, slot, self.map.mapping.store.signature)
         after = dict(self._raws(list(before)))
         record.saved_readback_match = all(_same(s, after[s], before[s]) for s in before)
         if not record.saved_readback_match:
@@ -387,7 +388,8 @@ class CanopenParams(ParameterInterface):
     def _restore(self, record: UploadRecord, targets: list[tuple[Slot, int | float]],
                  old: dict[Slot, int | float]) -> None:
         """Write the old value of every slot an attempted write touched, then read them all back."""
-        touched = [s for s, _ in targets][:sum(1 for w in record.writes if w.object and "store" not in w.object)]
+        written = sum(1 for w in record.writes if not (w.object or "").endswith("store.object"))
+        touched = [s for s, _ in targets][:written]
         ok = True
         for slot in touched:
             try:

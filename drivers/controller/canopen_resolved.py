@@ -5,6 +5,7 @@ hexapod preset (``cia402_hexapod``): six drives, one per leg, in profile positio
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -56,6 +57,8 @@ class Resolved:
     checksum: Slot | None = None
     store: Slot | None = None
     restore: Slot | None = None
+    stores: list[Slot] = field(default_factory=list)
+    """The store object on every node that holds a mapped parameter (each node stores its own)."""
     identity: dict[str, Slot] = field(default_factory=dict)
 
     def parameter_slots(self) -> list[Slot]:
@@ -174,6 +177,11 @@ def resolve(mapping: CanopenMapping, dictionaries: Mapping[int, ObjectDictionary
     for key, command in (("store", mapping.store), ("restore", mapping.restore)):
         if command is not None:
             setattr(out, key, _command(command, f"controller.{key}.object", one))
+    if mapping.store is not None:
+        holders = sorted({s.node for s in out.parameter_slots()}) or [primary]
+        ref = ObjectRef.parse(mapping.store.object)
+        out.stores = [out.store] if ref.node is not None else [
+            _command(mapping.store, "controller.store.object", functools.partial(one, node=n)) for n in holders]
     for name, sub in IDENTITY_SUBS.items():
         try:
             out.identity[name] = one(f"0x1018:{sub}", f"identity (0x1018:{sub}, CiA 301)", write=False)
