@@ -28,7 +28,7 @@ INVALID = 0x80000000
 EXTENDED = 0x20000000
 EMCY_PDO_LENGTH = 0x8210
 """CiA 301 emergency error code: PDO not processed due to length error."""
-CHANGE_POLL_S = 0.005
+CHANGE_POLL_S = 0.01
 """Event-driven TPDOs look for a change of their data this often (real time)."""
 
 
