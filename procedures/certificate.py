@@ -60,7 +60,7 @@ class SignoffContext:
     instrument_url: str | None = None
     """Where the instrument is: the CMM's URL, the tracker's host:port."""
     tracker: Any = None
-    """The station's laser tracker (``procedures.tracker_section.TrackerSection``) when it measured with one."""
+    """The station's laser tracker (``procedures.sections.tracker.TrackerSection``) when it measured with one."""
 
 
 def certificate_number(run_id: str) -> str:

@@ -60,8 +60,8 @@ from procedures.journal import Journal
 from procedures.link_guard import links_summary
 from procedures.plan import CalibrationPlan, PlanError, estimate_plan, load_plan, make_plan, save_plan
 from procedures.run_progress import adaptive_lines, bar_aside, combine_observers, terminal_progress
+from procedures.sections.tracker import instrument_options
 from procedures.timing import TimingSection
-from procedures.tracker_section import instrument_options
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NOT_ACCEPTED = 0, 2, 3, 4
 

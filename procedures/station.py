@@ -3,7 +3,7 @@
 A station file (TOML) says where the devices are; relative ``robot`` and ``records`` paths are relative to
 the file. ``open_devices(station)`` opens the controller (CAN), its parameter interface (Modbus) and the measuring
 instrument (the CMM, or with ``[instrument] kind = "tracker"`` the laser tracker of ``[tracker]``:
-``procedures.tracker_section``), checks that the controller answers, and closes everything again on exit or if any of
+``procedures.sections.tracker``), checks that the controller answers, and closes everything again on exit or if any of
 them fails to open.
 
 Example::
@@ -21,7 +21,10 @@ Example::
     channel = "can0"
     bitrate = 500000
 
-    [modbus]                           # TCP: host/port; RTU: serial_port/baudrate
+    [controller]                       # procedures.sections.controller: kind = "hilcal" (the default: [can] with
+    kind = "hilcal"                    # hilcal's message set and [modbus]) or "canopen" (EDS, node ids, mapping)
+
+    [modbus]                           # TCP: host/port; RTU: serial_port/baudrate (kind = "hilcal" only)
     host = "192.168.10.20"
     port = 502
     device_id = 1
@@ -29,7 +32,7 @@ Example::
     map = "maps/hexapod.toml"          # its register map (docs/modbus_maps.md); omit for hilcal's own hilcal-1.1
 
     [instrument]
-    kind = "cmm"                       # the default; "tracker": a laser tracker, [tracker] (procedures.tracker_section)
+    kind = "cmm"                  # the default; "tracker": a laser tracker ([tracker], procedures.sections.tracker)
 
     [cmm]
     url = "/dev/ttyUSB0"               # any pyserial URL, e.g. socket://10.0.0.5:1294
@@ -84,6 +87,7 @@ from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError,
 from drivers.cmm.base import ProbingConfig, as_transform
 from drivers.cmm.serial import SerialCmm, SerialCmmConfig
 from drivers.cmm.types import DEFAULT_ALIGNMENT_DEG, DEFAULT_ALIGNMENT_MM
+from drivers.controller.base import ControllerInterface, ParameterInterface
 from drivers.controller.hilcal_can import ControllerCan
 from drivers.controller.modbus import ControllerParams
 from drivers.controller.parameter_sets import ParameterSet
@@ -93,9 +97,10 @@ from hilcal.protocols.modbus_map import RegisterMap, RegisterMapError, default_r
 from hilcal.protocols.toml_text import toml_lines
 from hilcal.robot import Robot, RobotFileError, load_robot
 from procedures.link_guard import LinksSection
+from procedures.sections.controller import ControllerSection, HilcalControllerSection, open_canopen, resolve_paths
+from procedures.sections.tracker import InstrumentSection, TrackerSection, alignment_list, tracker_from_channels
 from procedures.signoff import AcceptanceSection, CmmIdentity
 from procedures.timing import TimingSection
-from procedures.tracker_section import InstrumentSection, TrackerSection, alignment_list, tracker_from_channels
 
 log = structlog.get_logger(__name__)
 
@@ -225,7 +230,8 @@ class StationConfig(_Strict):
     name: str | None = Field(default=None, min_length=1, max_length=100, description="this calibration station")
     machine: MachineSection = Field(default_factory=MachineSection)
     can: CanSection
-    modbus: ModbusSection
+    controller: ControllerSection = Field(default_factory=HilcalControllerSection)
+    modbus: ModbusSection | None = None
     instrument: InstrumentSection = Field(default_factory=InstrumentSection)
     cmm: CmmSection | None = None
     tracker: TrackerSection | None = None
@@ -239,6 +245,10 @@ class StationConfig(_Strict):
 
     @model_validator(mode="after")
     def _its_instrument(self) -> StationConfig:
+        if self.controller.kind == "hilcal" and self.modbus is None:
+            raise ValueError("a station with hilcal's own controller ([controller] kind = \"hilcal\", the default) "
+                             "needs a [modbus] section (its parameter interface); a CANopen controller says "
+                             "[controller] kind = \"canopen\"")
         if self.instrument.kind == "cmm" and self.cmm is None:
             raise ValueError("a station measured with a CMM ([instrument] kind = \"cmm\", the default) needs a [cmm] "
                              "section (url, alignment); one with a laser tracker says [instrument] kind = \"tracker\"")
@@ -298,6 +308,7 @@ def load_station(path: str | Path) -> StationConfig:
         value = data.get(key)
         if isinstance(value, str) and value and not Path(value).is_absolute():
             data[key] = str(base / value)
+    resolve_paths(data, base)
     url = data["records"].get("url") if isinstance(data.get("records"), dict) else None
     if isinstance(url, str) and url and "://" not in url and not Path(url).is_absolute():
         data["records"]["url"] = str(base / url)
@@ -314,7 +325,8 @@ def save_station(station: StationConfig, path: str | Path) -> None:
     Path(path).write_text(station_to_toml(station))
 
 
-def station_from_channels(channels: dict[str, Any], robot_path: str | Path | None = None) -> StationConfig:
+def station_from_channels(channels: dict[str, Any], robot_path: str | Path | None = None,
+                          controller: dict[str, Any] | None = None) -> StationConfig:
     """The station of a running simulator (``SimHandle.channels()`` / the JSON line of ``hilcal sim --json``).
 
     The robot is ``robot_path``, else the simulator's robot file, else the built-in robot; its name must be
@@ -333,7 +345,7 @@ def station_from_channels(channels: dict[str, Any], robot_path: str | Path | Non
             f"{path or '<built-in>'} is {robot.name!r}"
         )
     try:
-        data = {"robot": path, "can": channels["can"], "modbus": channels["modbus"]}
+        data = {"robot": path, "can": channels["can"], "modbus": channels.get("modbus"), "controller": controller}
         if channels.get("instrument") == "tracker":
             data.update(instrument={"kind": "tracker"}, tracker=tracker_from_channels(channels))
         else:
@@ -351,8 +363,10 @@ class Devices:
 
     station: StationConfig
     robot: Robot
-    controller: ControllerCan
-    params: ControllerParams
+    controller: ControllerInterface
+    """``ControllerCan`` (hilcal's message set) or ``CanopenController``."""
+    params: ParameterInterface
+    """``ControllerParams`` (Modbus) or ``CanopenParams`` (the same CANopen link as the controller)."""
     cmm: SerialCmm | None
     cmm_alignment: np.ndarray | None
     """(4, 4) T_cmm<-base from the station file (None: the station measures with a laser tracker)."""
@@ -376,40 +390,19 @@ class Devices:
 
 
 def open_devices(station: StationConfig, *, check: bool = True) -> Devices:
-    """Open the controller (CAN), its parameter interface (Modbus) and the measuring instrument of a station.
+    """Open the controller (hilcal's CAN message set, or CANopen), its parameter interface (Modbus, or the CANopen
+    controller's own) and the measuring instrument of a station.
 
-    With ``check`` the controller must send a heartbeat within ``motion.connect_timeout_s`` and the Modbus
-    device must identify as a compatible controller. DeviceOpenError (naming the device) if anything fails;
+    With ``check`` the controller must send a heartbeat within ``motion.connect_timeout_s`` and the parameter
+    interface must identify as a compatible controller. DeviceOpenError (naming the device) if anything fails;
     whatever was opened before is closed again.
     """
     try:
         robot = load_robot(station.robot)
     except RobotFileError as err:
         raise DeviceOpenError(f"robot: {err}") from None
-    motion = station.motion
     with ExitStack() as stack:
-        try:
-            controller = ControllerCan(
-                station.can.bus_config(),
-                robot,
-                heartbeat_timeout_s=motion.heartbeat_timeout_s,
-                ack_timeout_s=motion.ack_timeout_s,
-                position_tolerance_mm=motion.position_tolerance_mm,
-            )
-            stack.callback(controller.close)
-            if check:
-                controller.wait_for_heartbeat(motion.connect_timeout_s)
-        except Exception as err:
-            raise DeviceOpenError(f"controller (CAN {station.can.bus_config()}): {err}") from err
-        mb = station.modbus
-        try:
-            params = ControllerParams(mb.host, mb.port, serial_port=mb.serial_port, baudrate=mb.baudrate,
-                                      device_id=mb.device_id, timeout_s=mb.timeout_s)
-            stack.callback(params.close)
-            if check:
-                params.read_identity()
-        except Exception as err:
-            raise DeviceOpenError(f"controller parameters (Modbus {mb.host or mb.serial_port}): {err}") from err
+        controller, params = _open_controller(station, robot, stack, check)
         tracker, cmm, alignment = None, None, None
         t = station.measuring_tracker()
         try:
@@ -432,105 +425,46 @@ def open_devices(station: StationConfig, *, check: bool = True) -> Devices:
             raise DeviceOpenError(f"{what} ({station.instrument_address()}): {err}") from err
         devices = Devices(station, robot, controller, params, cmm, alignment, instrument, tracker, stack.pop_all())
     log.info("station_devices_opened", robot=robot.name, can=station.can.bus_config().get("channel"),
+             controller=station.controller.kind,
              modbus=params.endpoint, instrument=station.instrument.kind, address=station.instrument_address())
     return devices
 
 
-BUILT_IN_ROBOT = "the built-in paper Table 1 robot"
-
-
-def named_robot(path: str | Path) -> Path | None:
-    """The robot file a station file names (relative to the station file), None if it names none.
-
-    Only the ``robot`` key is read: a ``--sim`` run's station file may hold only its [timing] and sign-off settings.
-    """
-    p = Path(path)
+def _open_controller(station: StationConfig, robot: Robot, stack: ExitStack, check: bool
+                     ) -> tuple[ControllerInterface, ParameterInterface]:
+    """The controller and its parameter interface of the station's [controller] kind (closed by ``stack``)."""
+    motion = station.motion
+    if station.controller.kind == "canopen":
+        try:
+            controller, params = open_canopen(station.controller, station.can.bus_config(), robot,
+                                              heartbeat_timeout_s=motion.heartbeat_timeout_s,
+                                              ack_timeout_s=motion.ack_timeout_s,
+                                              position_tolerance_mm=motion.position_tolerance_mm)
+            stack.callback(controller.close)
+            if check:
+                controller.wait_for_heartbeat(motion.connect_timeout_s)
+                params.read_identity()
+        except Exception as err:
+            raise DeviceOpenError(f"controller (CANopen {station.controller.eds_path().name}, node(s) "
+                                  f"{station.controller.nodes()}, CAN {station.can.bus_config()}): {err}") from err
+        return controller, params
     try:
-        value = tomllib.loads(p.read_text()).get("robot")
-    except OSError as err:
-        raise StationConfigError(f"station file {p}: cannot read: {err.strerror}") from None
-    except tomllib.TOMLDecodeError as err:
-        raise StationConfigError(f"station file {p}: not valid TOML: {err}") from None
-    if value is None:
-        return None
-    if not isinstance(value, str) or not value:
-        raise StationConfigError(f"station file {p}: robot: a robot file's path is expected, not {value!r}")
-    return Path(value) if Path(value).is_absolute() else p.resolve().parent / value
-
-
-def agreed_robot(sources: list[tuple[str, Path | None]]) -> Path | None:
-    """The one robot of a run from the places that name one, each (what it is, its robot file; None: the built-in
-    robot), first the one to use: they must hold the same robot, by content (two files may hold it). The first's file;
-    StationConfigError naming both places and the first difference where two are not the same robot.
-    """
-    if not sources:
-        return None
+        controller = ControllerCan(station.can.bus_config(), robot, heartbeat_timeout_s=motion.heartbeat_timeout_s,
+                                   ack_timeout_s=motion.ack_timeout_s,
+                                   position_tolerance_mm=motion.position_tolerance_mm)
+        stack.callback(controller.close)
+        if check:
+            controller.wait_for_heartbeat(motion.connect_timeout_s)
+    except Exception as err:
+        raise DeviceOpenError(f"controller (CAN {station.can.bus_config()}): {err}") from err
+    mb = station.modbus
+    assert mb is not None  # the station's validator
     try:
-        robots = [load_robot(path) for _, path in sources]
-    except RobotFileError as err:
-        raise StationConfigError(str(err)) from None
-    for (other, _), robot in zip(sources[1:], robots[1:], strict=True):
-        difference = robot_difference(robots[0], robot)
-        if difference is not None:
-            raise StationConfigError(f"two robots: {sources[0][0]} and {other} are not the same robot: {difference}. "
-                                     "A run plans, moves and measures with one robot")
-    return sources[0][1]
-
-
-def robot_difference(a: Robot, b: Robot) -> str | None:
-    """The first difference between two robots' content, in the robot file's order (name, legs, home, workspace, leg
-    limits, mass, CMM spheres, ...) and in words ("leg 3's a_mm differs: y 12.0 vs 12.5 mm"); None: the same robot."""
-    found = _first_difference(a.spec.model_dump(), b.spec.model_dump(), ())
-    if found is None:
-        return None
-    path, va, vb = found
-    if path == ("name",):
-        return f"the robot names differ: {va!r} vs {vb!r}"
-    words: list[str] = []
-    component = ""
-    for i, p in enumerate(path):
-        if isinstance(p, str):
-            words.append(p)
-        elif path[i - 1] == "legs":
-            words[-1] = f"leg {p + 1}'s"
-        elif i < len(path) - 1:
-            words.append(str(p + 1))  # a sphere's number
-        else:  # a coordinate of a vector, or the end of a workspace range
-            component = ("min ", "max ")[p] if path[i - 1] in _RANGES else f"{'xyz'[p]} "
-    key = next(p for p in reversed(path) if isinstance(p, str))
-    unit = next((f" {u}" for u in ("mm", "deg", "kg") if key.endswith(f"_{u}")), "")
-    numbers = all(isinstance(v, float | int) and not isinstance(v, bool) for v in (va, vb))
-    return f"{' '.join(words)} differs: {component}{_said(va)} vs {_said(vb)}{unit if numbers else ''}"
-
-
-_RANGES = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
-"""The workspace's [min, max] pairs."""
-
-
-def _said(value: Any) -> str:
-    if value is None:
-        return "none"
-    if isinstance(value, dict):
-        return "a section"
-    if isinstance(value, list | tuple):
-        return f"{len(value)} entries"
-    return repr(value)
-
-
-def _first_difference(a: Any, b: Any, path: tuple) -> tuple[tuple, Any, Any] | None:
-    """(path, a's value, b's value) of the first difference between two parsed robot files, None if they are equal."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        for key in [*a, *(k for k in b if k not in a)]:
-            found = _first_difference(a.get(key), b.get(key), (*path, key))
-            if found is not None:
-                return found
-        return None
-    if isinstance(a, list | tuple) and isinstance(b, list | tuple) and len(a) == len(b):
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            found = _first_difference(x, y, (*path, i))
-            if found is not None:
-                return found
-        return None
-    if all(isinstance(v, float) for v in (a, b)):
-        return None if abs(a - b) <= 1e-9 * max(1.0, abs(a), abs(b)) else (path, a, b)
-    return None if a == b else (path, a, b)
+        params = ControllerParams(mb.host, mb.port, serial_port=mb.serial_port, baudrate=mb.baudrate,
+                                  device_id=mb.device_id, timeout_s=mb.timeout_s)
+        stack.callback(params.close)
+        if check:
+            params.read_identity()
+    except Exception as err:
+        raise DeviceOpenError(f"controller parameters (Modbus {mb.host or mb.serial_port}): {err}") from err
+    return controller, params

@@ -27,7 +27,7 @@ import numpy as np
 import structlog
 
 from hilcal.robot import RobotFileError
-from sim_devices.sim_config import SimConfig, SimConfigError, load_sim_config
+from sim_devices.sim_config import CONTROLLER_PROTOCOLS, SimConfig, SimConfigError, load_sim_config
 from sim_devices.sim_state import SimStateError
 from sim_devices.simulator import SimHandle, start_sim
 
@@ -46,12 +46,19 @@ class SimStartError(RuntimeError):
 def _describe(channels: dict[str, Any], handle: SimHandle) -> str:
     rig = handle.config.rig
     lines = [
-        f"hilcal simulator: robot {channels['robot']}, errors {rig.errors}, seed {rig.seed}",
+        f"hilcal simulator: robot {channels['robot']}, errors {rig.errors}, seed {rig.seed}, "
+        f"controller protocol {channels['controller']['protocol']}",
         f"  CAN (SLCAN)   {channels['can']['channel']}   "
         f"(can.Bus(interface='slcan', channel='{channels['can']['channel']}', sleep_after_open=0))",
-        f"  Modbus TCP    {channels['modbus']['host']}:{channels['modbus']['port']} "
-        f"(device id {channels['modbus']['device_id']})",
     ]
+    if "modbus" in channels:
+        lines.append(f"  Modbus TCP    {channels['modbus']['host']}:{channels['modbus']['port']} "
+                     f"(device id {channels['modbus']['device_id']})")
+    if "canopen" in channels:
+        co = channels["canopen"]
+        what = "HX-6 hexapod controller" if co["variant"] == "hexapod" else "LD-1 CiA 402 leg drives (legs 1-6)"
+        lines += [f"  CANopen       {what}, node id(s) {', '.join(str(n) for n in co['node_ids'])} ({co['profile']})",
+                  f"  EDS           {co['eds']}"]
     if "cmm" in channels:
         cmm = channels["cmm"]
         lines += [f"  CMM           {cmm['url']}" + (f"   or {cmm['socket_url']}" if cmm["socket_url"] else ""),
@@ -123,7 +130,7 @@ def _configure_logging(verbose: bool) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m sim_devices.launcher [--config FILE] [--json] [--state-file PATH] [--seed N]
-    [--instrument cmm|tracker]``."""
+    [--instrument cmm|tracker] [--controller hilcal|canopen|canopen-cia402]``."""
     parser = argparse.ArgumentParser(prog="python -m sim_devices.launcher", description=__doc__.split("\n")[0])
     parser.add_argument("--config", type=Path, help="simulator TOML file (default: built-in settings)")
     parser.add_argument("--json", action="store_true", help="print the channels as one JSON line")
@@ -131,13 +138,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, help="rig seed (overrides the file)")
     parser.add_argument("--instrument", choices=("cmm", "tracker"), help="the measuring instrument (overrides the "
                         "file; default: cmm)")
+    parser.add_argument("--controller", choices=CONTROLLER_PROTOCOLS, help="the controller's protocol (overrides "
+                        "the file; default: hilcal)")
     parser.add_argument("--stdin-watch", action="store_true", help="stop when stdin closes (spawning process gone)")
     parser.add_argument("--verbose", "-v", action="store_true", help="structured logs on stderr")
     args = parser.parse_args(argv)
     _configure_logging(args.verbose)
     try:
         config = load_sim_config(args.config, state_file=args.state_file, seed=args.seed,
-                                 instrument=args.instrument)
+                                 instrument=args.instrument, controller=args.controller)
     except SimConfigError as err:
         print(f"error: {err}", file=sys.stderr, flush=True)
         return 2

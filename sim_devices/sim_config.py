@@ -16,6 +16,9 @@ Example configuration (every key optional; relative paths are relative to the fi
 
     [controller]                    # ControllerSimConfig; time_scale defaults to 100 here
     time_scale = 100.0
+    protocol = "hilcal"             # or "canopen" (the HX-6, one CANopen node) or "canopen-cia402" (six LD-1 drives)
+                                    # (hilcal sim --controller ...)
+    canopen = { node_id = 1, drive_node_ids = [1, 2, 3, 4, 5, 6] }   # CANopen node ids
     following_error_mm = 5.0        # a moving leg whose reading is this far from its ramp: FAULT FOLLOWING_ERROR
     dead_transducer_legs = [4]      # a fault to find: legs whose transducer is dead (default: none)
     dead_reading_mm = 0.0           # what a dead one reads (controller length; default: its power-up reading)
@@ -68,12 +71,18 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from hilcal.protocols.toml_text import toml_lines
 from hilcal.robot import Robot
+from sim_devices.canopen.config import CanopenSimConfig, Variant
 from sim_devices.cmm.config import CmmServerConfig
 from sim_devices.controller.state_machine import ControllerSimConfig
 from sim_devices.rig.config import BUILTIN_ERROR_SETS, GeometryErrors, RigConfig, load_errors
 from sim_devices.tracker.config import TrackerServerConfig
 
 log = structlog.get_logger(__name__)
+
+
+ControllerProtocol = Literal["hilcal", "canopen", "canopen-cia402"]
+CONTROLLER_PROTOCOLS: tuple[str, ...] = ("hilcal", "canopen", "canopen-cia402")
+CANOPEN_VARIANTS: dict[str, Variant] = {"canopen": "hexapod", "canopen-cia402": "cia402"}
 
 
 class SimConfigError(ValueError):
@@ -112,6 +121,16 @@ class SimControllerConfig(ControllerSimConfig):
     """
 
     time_scale: float = Field(default=100.0, gt=0, description="simulated seconds per real second")
+    protocol: ControllerProtocol = Field(
+        default="hilcal", description="what the controller speaks: hilcal (hilcal's own CAN message set on SLCAN and "
+        "Modbus TCP), canopen (the HX-6 hexapod controller, one CANopen node) or canopen-cia402 (six CiA 402 LD-1 "
+        "leg drives), the CANopen ones on SLCAN only")
+    canopen: CanopenSimConfig = Field(default_factory=CanopenSimConfig, description="CANopen node ids")
+
+    @property
+    def canopen_variant(self) -> Variant | None:
+        """The CANopen variant served (None: hilcal's own protocol)."""
+        return CANOPEN_VARIANTS.get(self.protocol)
 
 
 class SimCmmConfig(CmmServerConfig):
@@ -205,10 +224,10 @@ def _resolve(base: Path, value: Any) -> Any:
 
 def load_sim_config(
     path: str | Path | None = None, *, state_file: str | Path | None = None, seed: int | None = None,
-    instrument: str | None = None,
+    instrument: str | None = None, controller: str | None = None,
 ) -> SimConfig:
-    """The configuration from a TOML file (None: defaults), with ``--state-file``/``--seed``/``--instrument``
-    overrides.
+    """The configuration from a TOML file (None: defaults), with ``--state-file``/``--seed``/``--instrument``/
+    ``--controller`` (the controller's protocol) overrides.
 
     Relative ``robot``, ``state_file`` and errors-file paths are relative to the file. SimConfigError otherwise.
     """
@@ -236,6 +255,9 @@ def load_sim_config(
         data["rig"] = {**(rig if isinstance(rig, dict) else {}), "seed": seed}
     if instrument is not None:
         data["instrument"] = instrument
+    if controller is not None:
+        table = data.get("controller")
+        data["controller"] = {**(table if isinstance(table, dict) else {}), "protocol": controller}
     data = {k: v for k, v in data.items() if v is not None}
     try:
         return SimConfig.model_validate(data)

@@ -1,5 +1,6 @@
-"""All simulated devices in one process: the servo controller (SLCAN + Modbus TCP) and the measuring instrument, the
-CMM (pty + TCP) or, with ``instrument = "tracker"``, the laser tracker (emScon on TCP).
+"""All simulated devices in one process: the servo controller (SLCAN + Modbus TCP; or, with ``[controller] protocol =
+"canopen"`` or ``"canopen-cia402"``, CANopen on SLCAN) and the measuring instrument, the CMM (pty + TCP) or, with
+``instrument = "tracker"``, the laser tracker (emScon on TCP).
 
 ``start_sim(config)`` composes the rig, the persistent controller, its servers and the instrument's server in-process
 (a context manager). The instrument reads the platform pose through the controller (``SimulatedController.true_pose``,
@@ -18,6 +19,8 @@ import structlog
 from scipy.spatial.transform import Rotation
 
 from hilcal.robot import Robot, load_robot
+from sim_devices.canopen.model import CanopenController
+from sim_devices.canopen.servers import CanopenServers, serve_canopen
 from sim_devices.cmm.server import CmmServerHandle, start_cmm_server
 from sim_devices.controller.servers import ControllerServers, serve_controller
 from sim_devices.controller.state_machine import SimulatedController
@@ -95,7 +98,7 @@ class SimHandle:
         robot: Robot,
         rig: SimulatedRig,
         controller: PersistentController,
-        controller_servers: ControllerServers,
+        controller_servers: ControllerServers | CanopenServers,
         cmm_server: CmmServerHandle | None,
         store: StateStore | None,
         restored: bool = False,
@@ -124,13 +127,17 @@ class SimHandle:
         servers, cmm, tracker = self.controller_servers, self.cmm_server, self.tracker_server
         out: dict[str, Any] = {
             "can": {"interface": "slcan", "channel": servers.slcan_path, "sleep_after_open": 0},
-            "modbus": {"host": HOST, "port": servers.modbus_port, "device_id": self.config.controller.device_id},
+            "controller": {"protocol": self.config.controller.protocol},
             "instrument": self.config.instrument,
             "robot": self.robot.name,
             "robot_path": None if self.config.robot is None else str(self.config.robot),
             "state_file": None if self.store is None else str(self.store.path),
             "pid": os.getpid(),
         }
+        if isinstance(servers, CanopenServers):
+            out["canopen"] = servers.channels()
+        else:
+            out["modbus"] = {"host": HOST, "port": servers.modbus_port, "device_id": self.config.controller.device_id}
         if cmm is not None:
             out["cmm"] = {"url": cmm.path or cmm.socket_url, "socket_url": cmm.socket_url,
                           "identity": self.config.cmm.identity(),
@@ -145,7 +152,7 @@ class SimHandle:
             out["tracker_alignment"] = self.tracker_alignment.tolist()
             out["tracker_targets"] = {"platform_targets_mm": self.tracker_targets[0].tolist(),
                                       "base_monuments_mm": self.tracker_targets[1].tolist()}
-        if servers.modbus_rtu_path is not None:
+        if isinstance(servers, ControllerServers) and servers.modbus_rtu_path is not None:
             out["modbus_rtu"] = {"serial_port": servers.modbus_rtu_path, "baudrate": 115200,
                                  "device_id": self.config.controller.device_id}
         return out
@@ -187,16 +194,24 @@ def start_sim(config: SimConfig | None = None, *, lock_timeout_s: float = DEFAUL
     robot = load_robot(cfg.robot)
     rig = SimulatedRig(robot, cfg.rig.rig_config(robot))
     store = StateStore(cfg.state_file, robot.name, lock_timeout_s) if cfg.state_file is not None else None
-    servers: ControllerServers | None = None
+    servers: ControllerServers | CanopenServers | None = None
     cmm: CmmServerHandle | None = None
     tracker: TrackerServerHandle | None = None
     try:
         saved = store.load() if store is not None else None
         if saved is not None:
             restore_rig(rig, saved.rig)
-        controller = PersistentController(robot, rig, cfg.controller, store, saved.banks if saved else None)
-        controller.save_state(force=True)
-        servers = serve_controller(controller)
+        banks = saved.banks if saved else None
+        variant = cfg.controller.canopen_variant
+        if variant is None:
+            controller = PersistentController(robot, rig, cfg.controller, store, banks)
+            controller.save_state(force=True)
+            servers = serve_controller(controller)
+        else:
+            controller = CanopenController(robot, rig, cfg.controller, store, banks)
+            controller.save_state(force=True)
+            nvram = None if cfg.state_file is None else cfg.state_file.with_name(cfg.state_file.name + ".canopen.json")
+            servers = serve_canopen(controller, variant, cfg.controller.canopen, nvram_path=nvram)
         view = LockedRigView(rig, controller)
         if cfg.instrument == "tracker":
             platform, base = tracker_targets(cfg, robot)
@@ -213,7 +228,7 @@ def start_sim(config: SimConfig | None = None, *, lock_timeout_s: float = DEFAUL
     handle = SimHandle(cfg, robot, rig, controller, servers, cmm, store, restored=saved is not None,
                        tracker_server=tracker)
     log.info("sim_started", robot=robot.name, restored=handle.restored, start_s=round(time.perf_counter() - t0, 3),
-             can=servers.slcan_path, modbus_port=servers.modbus_port, instrument=cfg.instrument,
+             can=servers.slcan_path, controller=cfg.controller.protocol, instrument=cfg.instrument,
              cmm=cmm.path if cmm else None, cmm_socket=cmm.socket_url if cmm else None,
              tracker=tracker.address if tracker else None)
     return handle

@@ -11,7 +11,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from types import TracebackType
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -200,6 +200,9 @@ class ParameterInterface(ABC):
 
     endpoint: str
     device_id: int
+    has_backup: bool = True
+    """The device keeps the set before the last commit (``rollback`` needs nothing); False: ``rollback`` needs the
+    record of the last upload, whose ``previous_params`` it writes back."""
 
     @abstractmethod
     def read_identity(self) -> Identity:
@@ -235,10 +238,17 @@ class ParameterInterface(ABC):
         """Copy the live set to non-volatile memory and verify it."""
 
     @abstractmethod
-    def rollback(self, previous: ParameterSet | None = None) -> UploadRecord:
-        """Put the set in use before the last commit back. A device that keeps a backup uses its own and ignores
-        ``previous``; one that keeps none writes ``previous`` (the caller's record of the set before the last upload,
-        e.g. the upload record's ``previous_live_sha256`` looked up in the records) or refuses without it."""
+    def rollback(self, last_upload: UploadRecord | None = None) -> UploadRecord:
+        """Put the set in use before the last commit back. A device with a backup uses its own and needs nothing; one
+        without writes ``last_upload``'s ``previous_params`` (the caller finds that record in the records) or refuses
+        without it."""
+
+    def describe(self) -> dict[str, Any]:
+        """Identity, state, live geometry and checksum as plain data (``hilcal check``); a checksum is None where
+        the device has none. Raises the driver's ParamsError where a read fails."""
+        identity = self.read_identity()
+        return {"endpoint": self.endpoint, "identity": identity.as_dict(), "state": self.read_state().name,
+                "geometry": self.read_live().model_dump(), "checksum": None}
 
     @abstractmethod
     def close(self) -> None:

@@ -235,6 +235,17 @@ class ControllerParams(StagedTransaction, DirectTransaction, ParameterInterface)
         address = None if section is None else getattr(section, bank)
         return None if address is None else u32_value(self.map, self._read(address, 2, f"read {bank} checksum"))
 
+    @property
+    def has_backup(self) -> bool:
+        """Staged maps and maps with backup registers keep the set before the last commit; others need the record."""
+        return self.map.staged or self.map.geometry.l0.backup is not None
+
+    def device_key(self, identity: Identity) -> str:
+        """Who the device is across restarts, for the records (its map and serial number, else its address)."""
+        if identity.serial_number:
+            return f"modbus:{self.map.device.name}:{identity.serial_number}"
+        return f"modbus:{self.map.device.name}:{self.endpoint}@{self.device_id}"
+
     def device_set(self, params: ParameterSet | Sequence[float] | np.ndarray) -> ParameterSet:
         """The set as the device will hold it: validated, the held parts rounded through the map's types and scales
         (float32 for hilcal's map). ParameterValidationError (nothing sent) for a value the map cannot hold."""
@@ -378,6 +389,7 @@ class ControllerParams(StagedTransaction, DirectTransaction, ParameterInterface)
             identity = self.read_identity()
             record.identity = identity.as_dict()
             record.offsets_only = identity.offsets_only
+            record.device = self.device_key(identity)
             if self.map.state is not None:
                 state = self.read_state()
                 if state is not ControllerState.DISABLED:
@@ -386,6 +398,7 @@ class ControllerParams(StagedTransaction, DirectTransaction, ParameterInterface)
             live = self._bank_parts("live")
             record.previous_live_crc32 = f"{crc32_of_words(self._flat(live)):08x}"
             record.previous_live_sha256 = sha_of_vector(self._vector(live))
+            record.previous_params = ParameterSet.from_vector(self._vector(live)).model_dump()
             if identity.compensation:
                 comp = self._comp_read("live")
                 record.previous_compensation_sha256 = sha_of_words(comp)
@@ -518,10 +531,14 @@ class ControllerParams(StagedTransaction, DirectTransaction, ParameterInterface)
         self._finish(record, None, "saved")
         return record
 
-    def rollback(self, previous: ParameterSet | None = None) -> UploadRecord:
+    def rollback(self, last_upload: UploadRecord | None = None) -> UploadRecord:
         """Put the set in use before the last upload back (controller DISABLED). Staged maps: the ROLLBACK command
         swaps live and backup, geometry and block together. Direct maps: ``modbus_direct.py`` (the device's backup
-        registers, else ``previous``, else the set this driver replaced in its last upload)."""
+        registers, else ``last_upload``'s ``previous_params``, else the set this driver replaced in its last
+        upload)."""
         if not self.map.staged:
+            previous = None
+            if last_upload is not None and last_upload.previous_params is not None:
+                previous = ParameterSet.model_validate(last_upload.previous_params)
             return self._direct_rollback(previous)
         return self._staged_rollback()

@@ -180,14 +180,16 @@ def now_utc() -> str:
 
 
 class WriteRecord(BaseModel):
-    """One write request: what, where, when and how it ended."""
+    """One write request: what, where, when and how it ended (``sdo_download``: a CANopen SDO write, its address
+    index << 8 | sub-index and ``object`` naming it with its node)."""
 
-    function: Literal["write_register", "write_registers"]
+    function: Literal["write_register", "write_registers", "sdo_download"]
     address: int
     count: int
     at: str
     ok: bool = False
     error: str | None = None
+    object: str | None = None
 
 
 class UploadRecord(BaseModel):
@@ -219,16 +221,32 @@ class UploadRecord(BaseModel):
     controller_status: str | None = None
     saved: bool = False
     saved_readback_match: bool | None = None
+    device: str | None = None
+    """The device an upload went to, independent of the port it was reached on (CANopen: 1018h's vendor, product
+    and serial with the node id): where a rollback of a device without a backup bank finds its last upload."""
+    previous_params: dict[str, Any] | None = None
+    """A device without a backup bank: the geometry it held before (a rollback writes it back)."""
+    previous_compensation: dict[str, Any] | None = None
+    checksum_match: bool | None = None
+    restore_writes: list[WriteRecord] = Field(default_factory=list)
+    """After a failure: the writes that put the old values back."""
+    restored_readback_match: bool | None = None
 
 
 @dataclass(frozen=True)
 class Identity:
+    """Who the controller is. A CANopen controller has no magic or protocol version (0): its 1018h vendor id,
+    product code and revision say who it is, and ``parameter_count`` counts the geometry values it holds."""
+
     magic: int
     protocol_version: int
     firmware_version: int
     serial_number: int
     capabilities: Capability
     parameter_count: int
+    vendor_id: int | None = None
+    product_code: int | None = None
+    node_id: int | None = None
 
     @property
     def compensation(self) -> bool:
@@ -240,7 +258,7 @@ class Identity:
         return Capability.OFFSETS_ONLY in self.capabilities and Capability.FULL_GEOMETRY not in self.capabilities
 
     def as_dict(self) -> dict[str, int]:
-        return {
+        out = {
             "magic": self.magic,
             "protocol_version": self.protocol_version,
             "firmware_version": self.firmware_version,
@@ -248,7 +266,9 @@ class Identity:
             "capabilities": int(self.capabilities),
             "parameter_count": self.parameter_count,
         }
-
+        out.update({k: v for k, v in (("vendor_id", self.vendor_id), ("product_code", self.product_code),
+                                      ("node_id", self.node_id)) if v is not None})
+        return out
 
 
 class CompensationBlock(BaseModel):

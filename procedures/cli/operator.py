@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+import functools
 from pathlib import Path
 from typing import Annotated
 
@@ -25,6 +26,12 @@ class InstrumentChoice(enum.StrEnum):
     tracker = "tracker"
 
 
+class ControllerChoice(enum.StrEnum):
+    hilcal = "hilcal"
+    canopen = "canopen"
+    canopen_cia402 = "canopen-cia402"
+
+
 RunRobotOption = Annotated[Path | None, typer.Option("--robot", help=(
     "robot TOML file; the station file's robot and the simulator's (--sim-config) must be the same robot, by content "
     "(refused before anything starts otherwise); default: theirs, else the built-in paper Table 1 robot"))]
@@ -41,6 +48,11 @@ def run(
                                                                 "laser tracker (default: the simulator config's, "
                                                                 "else the CMM); a station file names its own "
                                                                 "(\\[instrument] kind)")] = None,
+    controller: Annotated[ControllerChoice | None, typer.Option(help="with --sim: the simulated controller's "
+                                                                "protocol (hilcal's own, the HX-6 CANopen controller, "
+                                                                "or six CiA 402 drives; default: the simulator "
+                                                                "config's); a station file names its own "
+                                                                "(\\[controller] kind)")] = None,
     resume: Annotated[str | None, typer.Option(help="continue the interrupted run RUN_ID in --out")] = None,
     yes: Annotated[bool, typer.Option("--yes", help="unattended: answer every prompt yes")] = False,
     estimator: Annotated[EstimatorChoice, typer.Option(help="parameters to upload")] = EstimatorChoice.ls,
@@ -88,6 +100,9 @@ def run(
     if instrument is not None and (not sim or resume is not None):
         fail("--instrument chooses the simulated instrument of a new --sim run; a station file names its own "
              "([instrument] kind), and a resumed run keeps the one it started with")
+    if controller is not None and (not sim or resume is not None):
+        fail("--controller chooses the simulated controller of a new --sim run; a station file names its own "
+             "([controller] kind), and a resumed run keeps the one it started with")
     if not adaptive and (target_mm is not None or max_minutes is not None):
         fail("--target-mm and --max-minutes belong to an adaptive run: add --adaptive")
     if resume is not None and adaptive:
@@ -105,7 +120,9 @@ def run(
     request = RunRequest(out_dir=out_dir, sim=sim, station_path=station, sim_config=sim_config, resume=resume,
                          yes=yes, estimator=estimator.value, force=force, robot_path=robot, plan_path=plan,
                          instrument=None if instrument is None else instrument.value,
-                         seed=seed, records_path=records, operator=operator, sim_station=sim_station, timing=timing,
+                         seed=seed, records_path=records, operator=operator, timing=timing,
+                         sim_station=functools.partial(sim_station, controller=None if controller is None else
+                                                       controller.value, resume=resume is not None),
                          on_estimate=print_run_estimate, acceptance=None if acceptance is None else acceptance.value,
                          cycles=cycles, physics=physics is PhysicsChoice.on, on_prompt=_print_prompt_detail,
                          adaptive=adaptive_plan, on_adaptive_estimate=print_adaptive_estimate)
@@ -133,7 +150,7 @@ def _one_robot(robot: Path | None, station: Path | None, sim: bool, sim_config: 
     simulator's; a --sim run's station file counts only if it names a robot (it is read for its [timing]).
     """
     from procedures.cli.sim_station import simulator_robot
-    from procedures.station import BUILT_IN_ROBOT, agreed_robot, named_robot
+    from procedures.station_robot import BUILT_IN_ROBOT, agreed_robot, named_robot
 
     sources = [] if robot is None else [(f"--robot {robot}", robot)]
     try:
@@ -160,15 +177,23 @@ def _print_prompt_detail(prompt) -> None:
 
 
 def _params_client(station: Path):
-    from drivers.controller.modbus import ControllerParams
+    """The station's parameter interface: Modbus, or the CANopen controller's (exit 2 for a bad station file, 3 when
+    the device cannot be opened)."""
+    from hilcal.robot import RobotFileError
+    from procedures.sections.controller import open_parameters
     from procedures.station import StationConfigError, load_station
 
     try:
-        mb = load_station(station).modbus
+        config = load_station(station)
     except StationConfigError as e:
         fail(str(e))
-    return ControllerParams(mb.host, mb.port, serial_port=mb.serial_port, baudrate=mb.baudrate,
-                            device_id=mb.device_id, timeout_s=mb.timeout_s)
+    try:
+        return open_parameters(config)
+    except RobotFileError as e:
+        fail(str(e))
+    except Exception as e:  # the CAN interface or the device did not answer
+        err.print(f"[bold red]cannot open the controller:[/] {escape(str(e))}", highlight=False, markup=True)
+        raise typer.Exit(3) from None
 
 
 def _records(station: Path, records: str | None):
@@ -203,14 +228,15 @@ def _identity(station: Path) -> dict[str, str | None]:
 def upload(
     params_file: Annotated[Path, typer.Argument(help="parameter set JSON {a_mm, b_mm, l0_mm} with an optional "
                                                 "compensation block (a run's controller_set.json)")],
-    station: Annotated[Path, typer.Option(help="station TOML (its \\[modbus] section is used)")],
+    station: Annotated[Path, typer.Option(help="station TOML (its \\[controller] and \\[modbus] or \\[can] "
+                                          "sections are used)")],
     save: Annotated[bool, typer.Option(help="also save to non-volatile memory")] = False,
     yes: Annotated[bool, typer.Option("--yes", help="do not ask for confirmation")] = False,
     records: RecordsOption = None,
     operator: Annotated[str | None, typer.Option(help="name recorded with the upload")] = None,
 ) -> None:
     """Stand-alone controller parameter upload: validate, show the diff, confirm, upload, read back, record."""
-    from drivers.controller.modbus import ParamsError
+    from drivers.controller.parameter_sets import ParamsError
     from procedures.records import ParameterFileError, UploadDeclined, format_diff, upload_parameter_file
 
     identity = _identity(station)
@@ -236,12 +262,14 @@ def upload(
 
 
 def rollback(
-    station: Annotated[Path, typer.Option(help="station TOML (its \\[modbus] section is used)")],
+    station: Annotated[Path, typer.Option(help="station TOML (its \\[controller] and \\[modbus] or \\[can] "
+                                          "sections are used)")],
     records: RecordsOption = None,
     operator: Annotated[str | None, typer.Option(help="name recorded with the rollback")] = None,
 ) -> None:
-    """Restore the controller's previous parameter set (its backup bank), and record it."""
-    from drivers.controller.modbus import ParamsError
+    """Restore the controller's previous parameter set (its backup bank; a CANopen controller: the set before its last
+    upload, from the records), and record it."""
+    from drivers.controller.parameter_sets import ParamsError
     from procedures.records import rollback_controller
 
     identity = _identity(station)

@@ -21,16 +21,22 @@ def sim_command(
     seed: Annotated[int | None, typer.Option(help="rig seed")] = None,
     instrument: Annotated[str | None, typer.Option(
         help="the measuring instrument: cmm (the default) or tracker (a laser tracker on emScon over TCP)")] = None,
+    controller: Annotated[str | None, typer.Option(
+        help="the controller's protocol: hilcal (the default: hilcal's own CAN messages + Modbus TCP), canopen (the "
+             "HX-6 hexapod controller, one CANopen node) or canopen-cia402 (six CiA 402 leg drives)")] = None,
 ) -> None:
-    """Start every simulated device (controller on SLCAN/pty + Modbus TCP, CMM on a pty or laser tracker on TCP)
-    until Ctrl-C."""
+    """Start every simulated device (controller on SLCAN/pty + Modbus TCP or CANopen on SLCAN, CMM on a pty or laser
+    tracker on TCP) until Ctrl-C."""
     from sim_devices.launcher import run_sim_process
-    from sim_devices.sim_config import SimConfigError, load_sim_config
+    from sim_devices.sim_config import CONTROLLER_PROTOCOLS, SimConfigError, load_sim_config
 
     try:
         if instrument not in (None, "cmm", "tracker"):
             raise SimConfigError(f"--instrument must be cmm or tracker, not {instrument!r}")
-        sim_config = load_sim_config(config, state_file=state_file, seed=seed, instrument=instrument)
+        if controller not in (None, *CONTROLLER_PROTOCOLS):
+            raise SimConfigError(f"--controller must be one of {', '.join(CONTROLLER_PROTOCOLS)}, not {controller!r}")
+        sim_config = load_sim_config(config, state_file=state_file, seed=seed, instrument=instrument,
+                                     controller=controller)
     except SimConfigError as e:
         fail(str(e))
     raise typer.Exit(run_sim_process(sim_config, as_json))

@@ -13,13 +13,15 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from drivers.tracker.emscon import EmsconConfig
 from procedures.runner import SimulatorStartError
+from procedures.sections.tracker import TrackerDriver
 from procedures.signoff import AcceptanceSection
-from procedures.station import BUILT_IN_ROBOT, StationConfig, station_from_channels
+from procedures.station import StationConfig, station_from_channels
+from procedures.station_robot import BUILT_IN_ROBOT
 from procedures.timing import TimingSection
-from procedures.tracker_section import TrackerDriver
 from sim_devices.launcher import SimStartError, spawn_sim_subprocess, stop_sim_subprocess
 from sim_devices.sim_config import load_sim_config
 
@@ -47,6 +49,27 @@ SIM_TRACKER_ACCEPTANCE = AcceptanceSection(max_position_mm=0.2, rms_position_mm=
 """Example limits of the simulated tracker station: a tracker 4 to 9 m away measures each target to ±(15 µm + 6
 µm/m), so a pose scatters about 0.03 mm per axis (ten times the CMM's) and the CMM station's limits could not be
 proven (docs/protocols.md)."""
+HX6_MAPPING: dict[str, Any] = {
+    "setpoints": {"legs": {"array": "0x2000"}, "apply": "0x2001", "apply_counter": True, "apply_result": "0x2003",
+                  "apply_results": {1: "wrong state", 2: "fault active", 3: "e-stop active", 5: "out of limits"}},
+    "actual": {"legs": {"array": "0x2010"}},
+    "geometry": {"a_mm": {"records": [f"0x{0x2100 + k:04X}" for k in range(6)]},
+                 "b_mm": {"records": [f"0x{0x2110 + k:04X}" for k in range(6)]},
+                 "l0_mm": {"array": "0x2120"}},
+    "compensation": {**{term: {"array": f"0x{0x2201 + k:04X}"} for k, term in enumerate(
+        ("scale_ppm", "backlash_mm", "compliance_mm_per_kn", "compliance_mm_per_kn_m", "thermal_ppm_per_k",
+         "table_start_mm", "table_end_mm"))},
+        "reference_temperature_c": "0x2200:3", "table_points": "0x2200:2",
+        "table_mm": [f"0x{0x2210 + k:04X}" for k in range(6)]},
+    "readings": {"forces_kn": {"array": "0x2012"}, "temperature_c": "0x2013"},
+    "checksum": {"object": "0x2300:1", "algorithm": "crc32-objects"},
+    "identity": {"vendor_id": 0x0048434C, "product_code": 0x00060001},
+    "emcy_codes": {"0x9000": "e-stop", "0xFF02": "hydraulic pressure"},
+}
+"""The simulated HX-6's mapping, as its EDS ([Comments]) says where everything is: examples/stations/hx6_sim.toml
+holds the same as a station file (tests/cli/test_run_canopen.py checks that they agree)."""
+SIM_HEARTBEAT_MS = 20
+"""The simulated nodes' producer heartbeat time the station sets (their EDS default is 100 ms)."""
 TIMEOUT_FLOOR_S = 2.0
 """The simulated tracker's driver timeouts: its durations times its time scale, at least this (a busy computer)."""
 
@@ -71,18 +94,42 @@ def simulator_robot(sim_config: Path | None) -> tuple[str, Path | None]:
     return f"the robot of the simulator config {sim_config} ({robot})", robot
 
 
+def sim_controller_section(channels: dict[str, Any]) -> dict[str, Any] | None:
+    """The station's [controller] for the simulator's CANopen devices (None: hilcal's own protocol)."""
+    co = channels.get("canopen")
+    if co is None:
+        return None
+    if co["variant"] == "hexapod":
+        return {"kind": "canopen", "eds": co["eds"], "node_id": co["node_ids"][0], "heartbeat_ms": SIM_HEARTBEAT_MS,
+                **HX6_MAPPING}
+    return {"kind": "canopen", "eds": co["eds"], "node_ids": co["node_ids"], "profile": "cia402-hexapod",
+            "position_unit_mm": 0.001, "heartbeat_ms": SIM_HEARTBEAT_MS}
+
+
+CONTROLLER_FILE = "sim_controller.txt"
+"""In a --sim run's folder: the simulated controller's protocol it started with (a resume spawns the same)."""
+
+
 @contextlib.contextmanager
-def sim_station(sim_config: str | None, out_dir: Path, robot_path: str | None, instrument: str | None = None
-                ) -> Iterator[StationConfig]:
+def sim_station(sim_config: str | None, out_dir: Path, robot_path: str | None, instrument: str | None = None,
+                controller: str | None = None, resume: bool = False) -> Iterator[StationConfig]:
     """Spawn the simulator (state in ``out_dir/sim_state.json``, log in ``out_dir/sim.log``; ``instrument`` "cmm" or
-    "tracker" overrides the configuration's); stop it on exit."""
-    args = ["--state-file", str(out_dir / "sim_state.json"), *(["--instrument", instrument] if instrument else [])]
+    "tracker" and ``controller`` "hilcal", "canopen" or "canopen-cia402" override the configuration's; a resumed run
+    spawns the controller its run started with); stop it on exit."""
+    chosen = out_dir / CONTROLLER_FILE
+    if resume and controller is None and chosen.exists():
+        controller = chosen.read_text().strip() or None
+    elif not resume:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        chosen.write_text(controller or "")
+    args = ["--state-file", str(out_dir / "sim_state.json"), *(["--instrument", instrument] if instrument else []),
+            *(["--controller", controller] if controller else [])]
     try:
         proc, channels = spawn_sim_subprocess(sim_config, args, log_path=out_dir / "sim.log")
     except SimStartError as e:
         raise SimulatorStartError(str(e)) from e
     try:
-        station = station_from_channels(channels, robot_path)
+        station = station_from_channels(channels, robot_path, sim_controller_section(channels))
         tracker = station.measuring_tracker()
         if tracker is not None:
             tracker = tracker.model_copy(update={"driver": sim_tracker_driver(sim_config)})

@@ -1,6 +1,8 @@
 """The operator's parameter helpers behind ``hilcal upload`` and ``hilcal rollback``: read and check a parameter
 file, show its diff to the controller's live set, upload or roll back transactionally, and record every attempt
-(refused and failed ones too). They take a connected ``ControllerParams`` and never open a device themselves.
+(refused and failed ones too). They take a connected parameter interface (``ParameterInterface`` over Modbus,
+``CanopenParams``) and never open a device themselves. A device without a backup bank (CANopen) is rolled back to the
+set before its last upload, which that upload's record holds (``last_change``).
 """
 
 from __future__ import annotations
@@ -12,9 +14,9 @@ from typing import Any, Literal
 
 from pydantic import ValidationError
 
-from drivers.controller.modbus import (
+from drivers.controller.base import ParameterInterface
+from drivers.controller.parameter_sets import (
     CompensationBlock,
-    ControllerParams,
     ParameterSet,
     ParameterValidationError,
     ParamsError,
@@ -101,7 +103,7 @@ def format_diff(diff: list[dict[str, Any]]) -> str:
 
 
 def _local_record(
-    params_client: ControllerParams,
+    params_client: ParameterInterface,
     outcome: Literal["refused", "failed"],
     error: str,
     params_sha256: str | None = None,
@@ -114,7 +116,7 @@ def _local_record(
 
 
 def upload_parameter_file(
-    params_client: ControllerParams,
+    params_client: ParameterInterface,
     path_json: Path | str,
     records: Records,
     operator: str,
@@ -176,14 +178,41 @@ def upload_parameter_file(
     return result
 
 
-def rollback_controller(params_client: ControllerParams, records: Records, operator: str, *,
+LAST_CHANGES = 500
+"""How many of the newest runs and stand-alone uploads ``last_change`` looks through."""
+
+
+def last_change(records: Records, device: str) -> UploadRecord | None:
+    """The newest upload or rollback of ``device`` (an UploadRecord's ``device``) that wrote anything and kept the
+    set before it: committed or rolled back, or failed after some writes (its old set was what the device held)."""
+    found: list[tuple[str, dict[str, Any]]] = []
+    for entry in records.history(LAST_CHANGES, include_standalone=True):
+        for row in entry.get("uploads", []) if entry.get("kind") == "run" else [entry]:
+            rec = row.get("record") or {}
+            wrote = rec.get("outcome") in ("committed", "rolled_back") or (
+                rec.get("outcome") == "failed" and any(w.get("ok") for w in rec.get("writes", [])))
+            if rec.get("device") == device and rec.get("previous_params") and wrote and \
+                    rec.get("operation") in ("upload", "rollback"):
+                found.append((rec.get("started_at") or row.get("time") or "", rec))
+    if not found:
+        return None
+    return UploadRecord.model_validate(max(found, key=lambda pair: pair[0])[1])
+
+
+def rollback_controller(params_client: ParameterInterface, records: Records, operator: str, *,
                         machine: str | None = None, station: str | None = None) -> dict[str, Any]:
-    """Swap the controller's live and backup sets (undo the last commit); recorded whatever the outcome.
+    """Undo the last commit: a controller with a backup bank swaps live and backup; one without (CANopen) gets the
+    set before its last upload or rollback back (``last_change``). Recorded whatever the outcome.
 
     Returns the UploadRecord dump; the driver's ParamsError (with ``err.record``) on refusal or failure.
     """
     try:
-        record = params_client.rollback()
+        last = None
+        if not params_client.has_backup:
+            device_key = getattr(params_client, "device_key", None)
+            if device_key is not None:
+                last = last_change(records, device_key(params_client.read_identity()))
+        record = params_client.rollback(last)
     except ParamsError as err:
         err.record = err.record or _local_record(params_client, "failed", f"{type(err).__name__}: {err}",
                                                  operation="rollback")

@@ -260,9 +260,11 @@ def test_rollback_writes_the_set_before_the_last_upload_back(start_peer, nominal
         with pytest.raises(UploadRefused) as info:
             fresh.rollback()
         assert info.value.status is ParamStatus.NO_BACKUP and len(peer.writes) == n
-        fresh.upload(new_set)
-    with params_for(peer) as fresh:
-        record = fresh.rollback(ParameterSet.from_vector(nominal))
+        last = fresh.upload(new_set)
+    previous = ParameterSet.model_validate(last.previous_params).to_vector()
+    np.testing.assert_allclose(previous, nominal, atol=1e-4)  # a and b as the driver fills them (float32)
+    with params_for(peer) as fresh:  # the upload's record (hilcal rollback finds it in the records) says what to put
+        record = fresh.rollback(last)
     assert record.outcome == "rolled_back" and raw.registers_of_set() == old
     raw.client.close()
 

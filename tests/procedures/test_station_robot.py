@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 
 from hilcal.robot import load_robot
-from procedures.station import StationConfigError, agreed_robot, named_robot, robot_difference
+from procedures.station import StationConfigError
+from procedures.station_robot import agreed_robot, named_robot, robot_difference
 
 ROOT = Path(__file__).resolve().parents[2]
 SMALL = ROOT / "examples" / "hexapod_small.toml"

@@ -29,7 +29,7 @@ from sim_devices.rig.rig import SimulatedRig
 
 pytestmark = pytest.mark.timeout(60)
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 DEFAULT_MAP = ROOT / "hilcal" / "protocols" / "modbus_maps" / "hilcal-1.1.toml"
 SPEC = tomllib.loads(DEFAULT_MAP.read_text())
 LENGTHS = {"a": 18, "b": 18, "l0": 6}

@@ -105,7 +105,7 @@ def _imports(path: str) -> set[str]:
 
 
 def test_driver_and_simulator_share_only_protocol_data() -> None:
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     for name in ("base", "hilcal_can", "modbus"):
         imports = _imports(str(root / "drivers" / "controller" / f"{name}.py"))
         assert not any(m.startswith("sim_devices") for m in imports), name
