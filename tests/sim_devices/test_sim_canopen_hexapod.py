@@ -352,3 +352,30 @@ def test_virtual_bus_carrier(tmp_path) -> None:
             assert node.sdo[0x1018][1].raw == int(EDS["1018sub1"]["DefaultValue"], 0)
     finally:
         net.disconnect()
+
+
+def test_dead_transducer_stops_the_move_with_a_following_error_emcy(tmp_path) -> None:
+    rig = SimulatedRig(ROBOT, RigConfig(seed=2, errors=GeometryErrors.zero()))
+    model = CanopenController(ROBOT, rig, ControllerSimConfig(time_scale=1000.0, dead_transducer_legs=[2]))
+    channel = f"hx6-dead-{tmp_path.name}"
+    net = canopen.Network()
+    net.connect(interface="virtual", channel=channel)
+    node = canopen.RemoteNode(1, str(HEXAPOD_CONTROLLER_EDS))
+    net.add_node(node)
+    try:
+        with serve_canopen(model, "hexapod", bus_config={"interface": "virtual", "channel": channel}):
+            wait_for(lambda: node.sdo[0x6041].raw == 0x0240)
+            enable(node)
+            start = actual_lengths(node)
+            for leg in range(6):
+                node.sdo[0x2000][leg + 1].raw = float(start[leg] + 20.0)
+            node.sdo[0x2001].raw = 1
+            wait_for(lambda: node.emcy.active and node.emcy.active[-1].code == 0x8611)
+            emcy = node.emcy.active[-1]
+            assert emcy.register & 0x21 == 0x21 and emcy.data[0] == FaultCode.FOLLOWING_ERROR
+            assert state402(node) == "FAULT" and node.sdo[0x6041].raw & 0x2000
+            assert node.sdo[0x2400][2].raw == FaultCode.FOLLOWING_ERROR
+            moved = actual_lengths(node) - start
+            assert moved[1] == pytest.approx(0.0, abs=0.002) and 4.0 < moved[0] < 6.0  # stopped at the 5 mm limit
+    finally:
+        net.disconnect()
