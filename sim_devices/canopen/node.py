@@ -3,8 +3,9 @@ slave, heartbeat producer, EMCY producer, error objects, PDOs and store/restore 
 
 canopen's ``LocalNode`` keeps the object dictionary and serves SDO (expedited and segmented; block upload falls
 back to segmented, block download is refused as CiA 301 allows). Its NMT slave does not boot (no boot-up message
-after a reset, no reset of the object dictionary), so this module runs NMT itself: boot-up message 700h+id [00h],
-PRE-OPERATIONAL after initialisation, the five NMT commands of CiA 301 7.2.8.3.1, SDO refused in STOPPED (no
+after a reset, no reset of the object dictionary), so this module runs NMT itself: a reset keeps the node silent for
+BOOT_TIME_S, then the objects are loaded (defaults, then what 1010h stored), boot-up message 700h+id [00h] and
+PRE-OPERATIONAL; the five NMT commands of CiA 301 7.2.8.3.1, SDO refused in STOPPED (no
 answer), PDOs only in OPERATIONAL, heartbeat 700h+id [state] every 1017h ms. EMCY (CiA 301 7.2.7) on 80h+id with
 the error register (1001h) and the pre-defined error field (1003h: newest first, eight entries, cleared by writing
 0 to sub-index 0), no sooner than the inhibit time 1015h after the last one. 1010h/1011h take the signatures
@@ -101,6 +102,7 @@ class SimulatedNode:
         self._emcy_queue: list[bytes] = []
         self._emcy_last = -1e9
         self._pending_reset: tuple[float, bool] | None = None
+        self._sync_cob_id: int | None = None
         self.now = 0.0
 
     # ------------------------------------------------------------------ object access
@@ -131,6 +133,8 @@ class SimulatedNode:
             writer(subindex, bytes(data))
         if 0x1400 <= index <= TPDO_MAP + 0xFF:
             self.pdo.invalidate()
+        if index == 0x1005:
+            self._sync_cob_id = None
         if index == 0x1017:
             self._heartbeat_s = int.from_bytes(data, "little") / 1000.0
             self._next_heartbeat = self.now + self._heartbeat_s
@@ -163,7 +167,10 @@ class SimulatedNode:
         return False
 
     def sync_cob_id(self) -> int:
-        return int(self.value(0x1005)) & 0x7FF if 0x1005 in self.od else SYNC_DEFAULT
+        """The COB-ID of SYNC (1005h), read once per change."""
+        if self._sync_cob_id is None:
+            self._sync_cob_id = int(self.value(0x1005)) & 0x7FF if 0x1005 in self.od else SYNC_DEFAULT
+        return self._sync_cob_id
 
     def tick(self, now: float) -> None:
         """Timers: heartbeat, delayed EMCY, event-driven TPDOs, then the device's own."""
@@ -214,6 +221,7 @@ class SimulatedNode:
             if index in self.od:
                 self.local.data_store.setdefault(index, {})[sub] = data
         self.pdo.invalidate()
+        self._sync_cob_id = None
         self._emcy_queue.clear()
         self._heartbeat_s = int(self.value(0x1017)) / 1000.0
         self.send(0x700 + self.id, bytes([NmtState.INITIALISING]))

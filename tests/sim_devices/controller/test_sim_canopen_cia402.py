@@ -40,6 +40,18 @@ class Drives:
     model: CanopenController
     net: canopen.Network
     nodes: list[BaseNode402]
+    boot_ups: dict[int, list[float]]
+
+
+def reset(drives: Drives, nodes: list[BaseNode402]) -> None:
+    """NMT reset node (broadcast when all six), then wait for each one's boot-up message."""
+    before = {n.id: len(drives.boot_ups[n.id]) for n in nodes}
+    if len(nodes) == len(drives.nodes):
+        drives.net.nmt.state = "RESET"
+    else:
+        for node in nodes:
+            node.nmt.state = "RESET"
+    wait_for(lambda: all(len(drives.boot_ups[n.id]) > before[n.id] for n in nodes))
 
 
 @pytest.fixture(scope="module")
@@ -50,10 +62,13 @@ def drives() -> Iterator[Drives]:
     net = canopen.Network()
     net.connect(interface="slcan", channel=servers.slcan_path, sleep_after_open=0)
     nodes = [BaseNode402(node_id, str(CIA402_LEG_DRIVE_EDS)) for node_id in NODE_IDS]
+    boot_ups: dict[int, list[float]] = {}
     for node in nodes:
         net.add_node(node)
+        seen = boot_ups[node.id] = []
+        node.nmt.add_heartbeat_callback(lambda state, seen=seen: seen.append(time.monotonic()) if state == 0 else None)
     try:
-        yield Drives(servers, model, net, nodes)
+        yield Drives(servers, model, net, nodes, boot_ups)
     finally:
         net.disconnect()
         servers.close()
@@ -62,9 +77,7 @@ def drives() -> Iterator[Drives]:
 @pytest.fixture
 def legs(drives: Drives) -> list[BaseNode402]:
     """Every drive reset (NMT reset node, broadcast), its PDOs read by BaseNode402, then OPERATIONAL."""
-    drives.net.nmt.state = "RESET"
-    for node in drives.nodes:
-        node.nmt.wait_for_heartbeat(2.0)
+    reset(drives, drives.nodes)
     for node in drives.nodes:
         node.setup_402_state_machine()
         node.nmt.state = "OPERATIONAL"
@@ -166,13 +179,9 @@ def test_home_offset_is_the_leg_offset_and_stored_per_drive(drives: Drives, legs
     assert drives.model.geometry()[37] == pytest.approx((offset + 500) / 1000, abs=1e-3)
     two.sdo.download(0x1010, 3, SAVE)
     three.sdo[0x607C].raw = three.sdo[0x607C].raw + 700  # not stored
-    for node in (two, three):
-        node.nmt.state = "RESET"
-    for node in (two, three):
-        node.nmt.wait_for_heartbeat(2.0)
+    reset(drives, [two, three])
     assert two.sdo[0x607C].raw == offset + 500
     assert three.sdo[0x607C].raw == round(ROBOT.l0[2] * 1000)
     two.sdo.download(0x1011, 3, b"load")
-    two.nmt.state = "RESET"
-    two.nmt.wait_for_heartbeat(2.0)
+    reset(drives, [two])
     assert two.sdo[0x607C].raw == round(ROBOT.l0[1] * 1000)

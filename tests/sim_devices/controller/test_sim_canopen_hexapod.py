@@ -52,6 +52,21 @@ class Device:
     rig: SimulatedRig
     net: canopen.Network
     node: canopen.RemoteNode
+    boot_ups: list[float]
+
+
+def count_boot_ups(node: canopen.RemoteNode) -> list[float]:
+    """The times of the node's boot-up messages, as they arrive (canopen's own wait_for_bootup starts listening
+    after the reset command went out, so a device that boots at once can beat it)."""
+    seen: list[float] = []
+    node.nmt.add_heartbeat_callback(lambda state: seen.append(time.monotonic()) if state == 0 else None)
+    return seen
+
+
+def reset_node(node: canopen.RemoteNode, boot_ups: list[float], command: str = "RESET") -> None:
+    before = len(boot_ups)
+    node.nmt.state = command
+    wait_for(lambda: len(boot_ups) > before)
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +79,7 @@ def device() -> Iterator[Device]:
     node = canopen.RemoteNode(NODE_ID, str(HEXAPOD_CONTROLLER_EDS))
     net.add_node(node)
     try:
-        yield Device(servers, model, rig, net, node)
+        yield Device(servers, model, rig, net, node, count_boot_ups(node))
     finally:
         net.disconnect()
         servers.close()
@@ -73,10 +88,8 @@ def device() -> Iterator[Device]:
 @pytest.fixture
 def hx6(device: Device) -> canopen.RemoteNode:
     """The node freshly reset (NMT reset node: stored set loaded, SWITCH ON DISABLED, PRE-OPERATIONAL)."""
-    node = device.node
-    node.nmt.state = "RESET"
-    node.nmt.wait_for_bootup(2.0)
-    return node
+    reset_node(device.node, device.boot_ups)
+    return device.node
 
 
 def state402(node: canopen.RemoteNode) -> str:
@@ -135,8 +148,7 @@ def test_nmt_boot_up_heartbeat_and_states(device: Device, hx6: canopen.RemoteNod
         hx6.nmt.wait_for_heartbeat(1.0)
         stamps.append(hx6.nmt.timestamp)
     assert 0.015 < float(np.median(np.diff(stamps))) < 0.03  # heartbeats 20 ms apart
-    hx6.nmt.state = "RESET COMMUNICATION"
-    hx6.nmt.wait_for_bootup(2.0)
+    reset_node(hx6, device.boot_ups, "RESET COMMUNICATION")
     assert hx6.sdo[0x1017].raw == int(EDS["1017"]["DefaultValue"], 0)  # not stored: back to the default
 
 
@@ -151,8 +163,9 @@ def test_cia402_state_machine_and_fault(device: Device, hx6: canopen.RemoteNode)
     enable(hx6)
     hx6.emcy.reset()
     device.model.inject_fault(FaultCode.FOLLOWING_ERROR)
-    emcy = hx6.emcy.wait(timeout=2.0)
-    assert emcy is not None and emcy.code == 0x8611 and emcy.register & 0x01
+    wait_for(lambda: hx6.emcy.active)
+    emcy = hx6.emcy.active[-1]
+    assert emcy.code == 0x8611 and emcy.register & 0x01
     assert state402(hx6) == "FAULT"
     assert hx6.sdo[0x6041].raw & 0x2000  # following error
     assert hx6.sdo[0x1001].raw == emcy.register
@@ -244,8 +257,9 @@ def test_pdo_remapping_follows_cia301(device: Device, hx6: canopen.RemoteNode) -
     tpdo.trans_type = 1  # every SYNC
     tpdo.save()  # canopen's sequence: invalidate, re-map, validate
     hx6.nmt.state = "OPERATIONAL"
+    t0 = time.time()
     device.net.sync.transmit()
-    assert tpdo.wait_for_reception(1.0) is not None
+    wait_for(lambda: (tpdo.timestamp or 0) > t0)
     assert tpdo[0].raw == pytest.approx(device.model.temperature_reading(), abs=0.5)
     hx6.nmt.state = "PRE-OPERATIONAL"
     hx6.sdo[0x1803][1].raw = 0x80000000 | (0x480 + NODE_ID)
@@ -271,8 +285,7 @@ def test_geometry_read_written_and_checked(device: Device, hx6: canopen.RemoteNo
     assert hx6.sdo[0x2300][3].raw == zlib.crc32(struct.pack("<42f", *NOMINAL))  # not stored
     assert abort_code(lambda: hx6.sdo[0x2120][1].write(float("nan"))) == VALUE_RANGE
     assert abort_code(lambda: hx6.sdo[0x2100][1].write(20000.0)) == VALUE_RANGE
-    hx6.nmt.state = "RESET"
-    hx6.nmt.wait_for_bootup(2.0)
+    reset_node(hx6, device.boot_ups)
     assert hx6.sdo[0x2120][2].raw == NOMINAL[37]  # a reset loads the stored set
 
 
@@ -298,8 +311,7 @@ def test_compensation_terms_and_stroke_tables(device: Device, hx6: canopen.Remot
             terms[5], terms[6] = -400.0, 400.0
         data += struct.pack("<7f", *terms) + struct.pack("<5f", *(table if leg == 2 else [0.0] * 5))
     assert hx6.sdo[0x2300][2].raw == zlib.crc32(data)
-    hx6.nmt.state = "RESET"
-    hx6.nmt.wait_for_bootup(2.0)
+    reset_node(hx6, device.boot_ups)
     assert hx6.sdo[0x2200][2].raw == 0 and hx6.sdo[0x2202][1].raw == 0.0
 
 
@@ -313,25 +325,21 @@ def test_store_signature_and_restore_defaults(device: Device, hx6: canopen.Remot
     hx6.sdo[0x2120][6].raw = 4001.0
     hx6.sdo.download(0x1010, 4, SAVE)
     assert hx6.sdo[0x2300][5].raw == count + 1
-    hx6.nmt.state = "RESET"
-    hx6.nmt.wait_for_bootup(2.0)
+    reset_node(hx6, device.boot_ups)
     assert hx6.sdo[0x2120][6].raw == 4001.0
     hx6.sdo.download(0x1011, 4, LOAD)
     assert hx6.sdo[0x2120][6].raw == 4001.0  # restored defaults take effect at the next reset
-    hx6.nmt.state = "RESET"
-    hx6.nmt.wait_for_bootup(2.0)
+    reset_node(hx6, device.boot_ups)
     assert hx6.sdo[0x2120][6].raw == NOMINAL[41]
 
 
 def test_stored_communication_parameters_survive_a_reset(device: Device, hx6: canopen.RemoteNode) -> None:
     hx6.sdo[0x1017].raw = 250
     hx6.sdo.download(0x1010, 2, SAVE)
-    hx6.nmt.state = "RESET"
-    hx6.nmt.wait_for_bootup(2.0)
+    reset_node(hx6, device.boot_ups)
     assert hx6.sdo[0x1017].raw == 250
     hx6.sdo.download(0x1011, 2, LOAD)
-    hx6.nmt.state = "RESET COMMUNICATION"
-    hx6.nmt.wait_for_bootup(2.0)
+    reset_node(hx6, device.boot_ups, "RESET COMMUNICATION")
     assert hx6.sdo[0x1017].raw == int(EDS["1017"]["DefaultValue"], 0)
 
 
@@ -350,5 +358,32 @@ def test_virtual_bus_carrier(tmp_path) -> None:
             wait_for(lambda: 0x7F in states)
             assert states[0] == 0x00  # the boot-up went out on the bus at power-on, then heartbeats
             assert node.sdo[0x1018][1].raw == int(EDS["1018sub1"]["DefaultValue"], 0)
+    finally:
+        net.disconnect()
+
+
+def test_dead_transducer_stops_the_move_with_a_following_error_emcy(tmp_path) -> None:
+    rig = SimulatedRig(ROBOT, RigConfig(seed=2, errors=GeometryErrors.zero()))
+    model = CanopenController(ROBOT, rig, ControllerSimConfig(time_scale=1000.0, dead_transducer_legs=[2]))
+    channel = f"hx6-dead-{tmp_path.name}"
+    net = canopen.Network()
+    net.connect(interface="virtual", channel=channel)
+    node = canopen.RemoteNode(1, str(HEXAPOD_CONTROLLER_EDS))
+    net.add_node(node)
+    try:
+        with serve_canopen(model, "hexapod", bus_config={"interface": "virtual", "channel": channel}):
+            wait_for(lambda: node.sdo[0x6041].raw == 0x0240)
+            enable(node)
+            start = actual_lengths(node)
+            for leg in range(6):
+                node.sdo[0x2000][leg + 1].raw = float(start[leg] + 20.0)
+            node.sdo[0x2001].raw = 1
+            wait_for(lambda: node.emcy.active and node.emcy.active[-1].code == 0x8611)
+            emcy = node.emcy.active[-1]
+            assert emcy.register & 0x21 == 0x21 and emcy.data[0] == FaultCode.FOLLOWING_ERROR
+            assert state402(node) == "FAULT" and node.sdo[0x6041].raw & 0x2000
+            assert node.sdo[0x2400][2].raw == FaultCode.FOLLOWING_ERROR
+            moved = actual_lengths(node) - start
+            assert moved[1] == pytest.approx(0.0, abs=0.002) and 4.0 < moved[0] < 6.0  # stopped at the 5 mm limit
     finally:
         net.disconnect()
