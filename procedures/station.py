@@ -460,8 +460,7 @@ def _open_controller(station: StationConfig, robot: Robot, stack: ExitStack, che
     mb = station.modbus
     assert mb is not None  # the station's validator
     try:
-        params = ControllerParams(mb.host, mb.port, serial_port=mb.serial_port, baudrate=mb.baudrate,
-                                  device_id=mb.device_id, timeout_s=mb.timeout_s)
+        params = mb.open_params(ParameterSet.from_robot(robot))
         stack.callback(params.close)
         if check:
             params.read_identity()

@@ -130,12 +130,14 @@ ControllerSection = Annotated[HilcalControllerSection | CanopenControllerSection
 
 
 def resolve_paths(data: dict[str, Any], base: Path) -> None:
-    """A station file's relative ``controller.eds`` taken relative to the file (in place)."""
-    section = data.get("controller")
-    if isinstance(section, dict):
-        eds = section.get("eds")
-        if isinstance(eds, str) and eds and eds not in BUILTIN_EDS and not Path(eds).is_absolute():
-            section["eds"] = str(base / eds)
+    """A station file's relative ``controller.eds`` and ``modbus.map`` taken relative to the file (in place)."""
+    from hilcal.protocols.modbus_map import built_in_maps
+
+    for key, name, built_in in (("controller", "eds", BUILTIN_EDS), ("modbus", "map", built_in_maps())):
+        section = data.get(key)
+        value = section.get(name) if isinstance(section, dict) else None
+        if isinstance(value, str) and value and value not in built_in and not Path(value).is_absolute():
+            section[name] = str(base / value)
 
 
 def open_canopen(section: CanopenControllerSection, bus_config: dict[str, Any], robot: Any, *,
@@ -158,7 +160,7 @@ def open_canopen(section: CanopenControllerSection, bus_config: dict[str, Any], 
 def open_parameters(station: Any) -> Any:
     """The station's parameter interface alone (``hilcal upload``, ``hilcal rollback``): Modbus, or the CANopen
     controller's (its link opened; the robot file's geometry stands for what the device does not hold)."""
-    from drivers.controller.modbus import ControllerParams
+    from drivers.controller.parameter_sets import ParameterSet
     from hilcal.robot import load_robot
 
     if station.controller.kind == "canopen":
@@ -169,5 +171,4 @@ def open_parameters(station: Any) -> Any:
                             position_tolerance_mm=station.motion.position_tolerance_mm)[1]
     mb = station.modbus
     assert mb is not None
-    return ControllerParams(mb.host, mb.port, serial_port=mb.serial_port, baudrate=mb.baudrate,
-                            device_id=mb.device_id, timeout_s=mb.timeout_s)
+    return mb.open_params(ParameterSet.from_robot(load_robot(station.robot)))
