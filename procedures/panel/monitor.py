@@ -47,7 +47,7 @@ class StationMonitor:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="panel-station-monitor", daemon=True)
         live.update("cmm", url=devices.station.instrument_address(), kind=devices.station.instrument.kind)
-        live.update("controller", modbus=devices.params.endpoint,
+        live.update("controller", parameters=devices.params.endpoint,
                     can=str(devices.station.can.bus_config().get("channel")))
 
     def start(self) -> StationMonitor:

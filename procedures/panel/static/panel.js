@@ -289,7 +289,7 @@ function renderStation() {
     `<span class="${alive ? "ok" : "bad"}">${fmt(c.heartbeat_age_ms, 0)} ms ago</span> <span class="sub">(lost after ${fmt(c.heartbeat_timeout_ms, 0)} ms)</span>`;
   $("ctl-estop").innerHTML = c.estop == null ? "-" : c.estop ? '<span class="bad">PRESSED</span>' : '<span class="ok">released</span>';
   $("ctl-fault").textContent = c.fault == null ? "-" : c.fault + (c.last_fault_event ? ` (last event ${c.last_fault_event.fault})` : "");
-  $("ctl-modbus").textContent = c.modbus || "-";
+  $("ctl-params").textContent = c.parameters || "-";
   const age = cmm.last_pose_at ? ` · last pose ${dur(Date.now() / 1000 - cmm.last_pose_at)} ago` : "";
   const err = cmm.last_error ? ` · <span class="bad">${esc(cmm.last_error)}</span>` : "";
   const what = cmm.kind === "tracker" ? "laser tracker " : "";
