@@ -151,7 +151,9 @@ def move_report(cmd: Command) -> MoveReport:
             if prop.name == "Dis" and value <= 0:
                 raise ArgumentError(Code.BAD_PROPERTY, "Dis must be above 0")
             time_s, dis_mm = (value, dis_mm) if prop.name == "Time" else (time_s, value)
-        elif prop.numbers or prop.name not in ("X", "Y", "Z", *TOOL_AXES):
+        elif prop.numbers:
+            raise ArgumentError(Code.INCORRECT_ARGUMENTS, f"{prop.name}() takes no numbers in a report")
+        elif prop.name not in ("X", "Y", "Z", *TOOL_AXES):
             raise ArgumentError(Code.BAD_PROPERTY, f"{prop.name} cannot be reported while moving")
         else:
             items.append(prop.name)
@@ -172,6 +174,8 @@ def goto_target(cmd: Command) -> dict[str, float]:
     """GoTo(X(x), Y(y), Z(z)) (6.3.2.12): one or more axes; the head's angles and R() are not supported here."""
     props = _properties(cmd)
     for prop in props:
+        if prop.name in (*TOOL_AXES, "R") and len(prop.numbers) != 1:
+            raise ArgumentError(Code.INCORRECT_ARGUMENTS, f"{prop.name} needs one number")
         if prop.name in (*TOOL_AXES, "R"):
             raise ArgumentError(Code.ARGUMENT_NOT_SUPPORTED, f"{prop.name}(..): a fixed probe head, no rotary table")
         if prop.name == "IJK":
@@ -232,6 +236,8 @@ def _property_ref(prop: Property, enumerating: bool = False) -> PropertyRef:
         return ref
     if path in (["Name"], ["AvrRadius"]) and not enumerating and not (path[0] == "AvrRadius" and owner != "Tool"):
         return ref
+    if owner == "FoundTool" and path[0] in ("Alignment", "CollisionVolume"):
+        raise ArgumentError(Code.INCORRECT_ARGUMENTS, f"{prop.name}: a property of the active tool only (6.3.11)")
     if path[0] in NOT_IMPLEMENTED_PROPERTIES:
         raise ArgumentError(Code.ARGUMENT_NOT_SUPPORTED, f"{prop.name}() is not implemented by this server")
     raise ArgumentError(Code.BAD_ARGUMENT, f"{prop.name} is no tool property")

@@ -189,7 +189,10 @@ class CmmSession:
                 job.aborted = True
 
     def _refusal(self, method: str) -> bool:
-        """Whether the session's state refuses this method (error state, after AbortE, no session)."""
+        """Whether the session's error state (or AbortE) refuses this method. EndSession and StartSession always pass:
+        "sending an EndSession() followed by a StartSession will start a new session in any case" (6.3.1)."""
+        if method in SESSIONLESS_METHODS:
+            return False
         if self.state.aborted:
             return method != Method.CLEAR_ALL_ERRORS
         return bool(self.state.errors) and method not in (*WHILE_IN_ERROR_METHODS, Method.ABORT_E)
