@@ -96,6 +96,10 @@ def measured_item(item: str, machine: CmmMachine, point: np.ndarray, direction: 
     return f"{item}({number(0.0)})"  # Q(): a touch-trigger point is good (0); Tool.A/B/C: a fixed head
 
 
+IMPLICIT_DIRECTION_MIN_MM = 1e-3
+"""PtMeas without IJK, the ball closer to the nominal point than this: no direction (1010)."""
+
+
 class Handlers:
     """The methods that do not move the machine, and the checks and plans of those that do."""
 
@@ -358,7 +362,8 @@ class Handlers:
             with machine.lock:
                 vector = np.asarray(ijk, dtype=float) if ijk is not None else machine.position_mm - nominal
             norm = float(np.linalg.norm(vector))
-            if norm == 0.0:  # no IJK: the direction from the nominal point to where the ball is (6.3.2.13)
+            if norm == 0.0 or (ijk is None and norm < IMPLICIT_DIRECTION_MIN_MM):
+                # no IJK: the direction from the nominal point to where the ball is (6.3.2.13); none there
                 reply.error(Code.VECTOR_HAS_NO_NORM)
                 return None
             return machine.plan_touch(nominal, vector / norm, plan)

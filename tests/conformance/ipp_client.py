@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import select
 import socket
 import termios
@@ -150,3 +151,66 @@ class IppClient:
 def _readable_tag(tag: str) -> bool:
     return len(tag) == 5 and ((tag.isdigit() and tag != "00000") or (tag[0] == "E" and tag[1:].isdigit()
                                                                       and tag != "E0000"))
+
+
+class IppError(Exception):
+    """A transaction answered with ``!`` lines (the error numbers in ``codes``)."""
+
+    def __init__(self, transaction: Transaction) -> None:
+        super().__init__("; ".join(transaction.lines))
+        self.transaction = transaction
+        self.codes = transaction.errors
+
+
+class IppSession:
+    """Tagged commands over an ``IppClient`` for tests: each call one transaction, ``IppError`` on ``!`` lines."""
+
+    def __init__(self, client: IppClient, timeout_s: float = 5.0) -> None:
+        self.client = client
+        self.timeout_s = timeout_s
+        self._tag = 0
+        self.events: list[str] = []
+
+    def next_tag(self) -> str:
+        self._tag = self._tag % 99999 + 1
+        return f"{self._tag:05d}"
+
+    def call(self, method: str, check: bool = True) -> Transaction:
+        """``method`` (e.g. ``"GoTo(X(1))"``) with the next command tag; its transaction."""
+        t = self.client.exchange(f"{self.next_tag()} {method}", self.timeout_s)
+        self.events += t.others
+        if check and "!" in t.markers:
+            raise IppError(t)
+        return t
+
+    def start(self, home: bool = True) -> None:
+        self.call("StartSession()")
+        if home:
+            self.call("Home()")
+
+    def goto(self, point: object) -> None:
+        x, y, z = (float(v) for v in point)  # type: ignore[attr-defined]
+        self.call(f"GoTo(X({x:.6f}), Y({y:.6f}), Z({z:.6f}))")
+
+    def ptmeas(self, nominal: object, ijk: object | None = None) -> list[float]:
+        """The numbers of PtMeas's report (X, Y, Z by default: the ball's centre)."""
+        x, y, z = (float(v) for v in nominal)  # type: ignore[attr-defined]
+        text = f"PtMeas(X({x:.6f}), Y({y:.6f}), Z({z:.6f})"
+        if ijk is not None:
+            i, j, k = (float(v) for v in ijk)  # type: ignore[attr-defined]
+            text += f", IJK({i:.9f}, {j:.9f}, {k:.9f})"
+        [data] = self.call(text + ")").data
+        return numbers(data)
+
+    def position(self) -> list[float]:
+        [data] = self.call("Get(X(), Y(), Z())").data
+        return numbers(data)
+
+    def clear(self) -> None:
+        self.call("ClearAllErrors()")
+
+
+def numbers(data: str) -> list[float]:
+    """The numbers of a data line, in order (strings skipped)."""
+    data = re.sub(r'"[^"]*"', "", data)
+    return [float(v) for v in re.findall(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[Ee][+-]?[0-9]+)?", data)]
