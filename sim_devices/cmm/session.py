@@ -47,6 +47,8 @@ ABORT_WAIT_S = 10.0
 MOVING = frozenset({Method.HOME, Method.GO_TO, Method.PT_MEAS, Method.CHANGE_TOOL})
 REPORT_INTERVAL_S = 0.1
 """6.3.2.7: at most 10 move reports per second (machine time)."""
+TIME_TOL_S = 1e-9
+"""Sums of machine-time samples compared with this slack."""
 
 
 @dataclass
@@ -292,12 +294,12 @@ class CmmSession:
         if daemon is None:
             return
         daemon.since_s += dt
-        if daemon.since_s < REPORT_INTERVAL_S:
+        if daemon.since_s < REPORT_INTERVAL_S - TIME_TOL_S:
             return
         report = daemon.report
         moved = float(np.linalg.norm(position - daemon.last_mm))
         due = (report.time_s is None and report.dis_mm is None) or \
-            (report.time_s is not None and daemon.since_s >= report.time_s) or \
+            (report.time_s is not None and daemon.since_s >= report.time_s - TIME_TOL_S) or \
             (report.dis_mm is not None and moved >= report.dis_mm)
         if due:
             self._emit_report(position)
