@@ -3,7 +3,7 @@
 The driver (``drivers/cmm/``) and the simulated CMM (``sim_devices/cmm/``) both read these tables, but each side has
 its own parser and formatter, so the simulator cannot agree with the driver merely by sharing its code. Section
 numbers are those of the specification (``I++ DME Specification 1.4.3``); ``docs/protocols.md`` says which commands
-each side supports and where 1.4.3 and later versions differ.
+the driver uses, ``docs/cmm_simulator.md`` what the simulator supports and where 1.4.3 and later versions differ.
 
 Line grammar (6.1.4.2, abridged; 6.2: ASCII 32..126, CR LF terminated, at most 65536 characters)::
 

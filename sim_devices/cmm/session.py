@@ -93,6 +93,14 @@ class CmmSession:
         with self._out:
             self._send(data)
 
+    def _write_event(self, data: bytes) -> None:
+        """A line another thread raises (a move report, an unsolicited error): a link that just went away drops it
+        instead of failing the motion that raised it."""
+        try:
+            self._write(data)
+        except OSError as err:
+            log.info("cmm_sim.event_dropped", error=str(err))
+
     def _finish(self, tag: str, body: list[bytes], plan: FaultPlan, ack: bool = False) -> None:
         """A transaction's lines after (or, with ``ack``, with) its acknowledgement, with the planned faults."""
         lines = [*body, line(tag, Marker.DONE)]
@@ -317,7 +325,7 @@ class CmmSession:
         daemon.since_s, daemon.last_mm = 0.0, position.copy()
         items = daemon.report.items or ("X", "Y", "Z")
         data = ", ".join(measured_item(item, self.machine, position, None) for item in items)
-        self._write(line(daemon.tag, Marker.DATA, data))
+        self._write_event(line(daemon.tag, Marker.DATA, data))
 
     def _on_machine_event(self, code: Code, where: str) -> None:
         """An unsolicited error of the machine (an emergency stop, a platform that struck the ball): ``E0000 !``."""
@@ -326,7 +334,7 @@ class CmmSession:
         reply = Reply(SERVER_EVENT_TAG, where)
         reply.error(code)
         self._serious(reply)
-        self._write(reply.lines[0])
+        self._write_event(reply.lines[0])
 
     def close(self) -> None:
         """The link ended: stop the worker (a motion it runs is stopped), forget the daemons."""
