@@ -386,7 +386,9 @@ class Handlers:
 
 
 def _children(tool: Tool, path: tuple[str, ...], everything: bool) -> list[tuple[str, str]]:
-    """(name, type) of a tool property's children: blocks, parameters, parameter parts."""
+    """(name, type) of a tool property's children: blocks, parameters, parameter parts (a part has none)."""
+    if len(path) == 3:
+        return []
     if len(path) == 2:
         return [(part, "Number") for part in PARAMETER_PARTS]
     if len(path) == 1:

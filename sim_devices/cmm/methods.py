@@ -275,7 +275,4 @@ def enum_property(cmd: Command) -> PropertyRef:
         raise ArgumentError(Code.INCORRECT_ARGUMENTS, f"{cmd.method} needs a property such as Tool.PtMeasPar()")
     if arg.numbers:
         raise ArgumentError(Code.BAD_ARGUMENT, f"{arg.name}(): no numbers when enumerating")
-    ref = _property_ref(arg, enumerating=True)
-    if len(ref.path) == 3:
-        raise ArgumentError(Code.BAD_ARGUMENT, f"{arg.name} is a number, it has no children")
-    return ref
+    return _property_ref(arg, enumerating=True)  # a parameter's part is a number: no children (as NIST's server)
