@@ -22,6 +22,7 @@ received goes to the transcript sink as it is.
 
 from __future__ import annotations
 
+import select
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -89,7 +90,8 @@ class LinkConfig(BaseModel):
     query_retries: int = Field(default=2, ge=0, le=5, description="re-asks of a query after a timeout")
     abort_timeout_s: float = Field(default=10.0, gt=0, description="from AbortE to its '%'")
     max_skipped_lines: int = Field(default=32, ge=0, description="unusable lines tolerated in one wait")
-    poll_s: float = Field(default=0.02, gt=0, description="read granularity of the port")
+    poll_s: float = Field(default=0.02, gt=0, description="read granularity of a port without a descriptor to wait "
+                          "on (a pty, a tty and TCP have one)")
     write_timeout_s: float = Field(default=2.0, gt=0)
 
 
@@ -184,16 +186,22 @@ class IppLink:
         self.abandoned: deque[str] = deque(maxlen=64)
         self.daemons: set[str] = set()
         self.events: deque[ServerEvent] = deque(maxlen=256)
+        self.events_total = 0
+        """Events received since the link opened (the driver counts which it has seen)."""
         self.reports: deque[ResponseLine] = deque(maxlen=1024)
         """Daemons' data (OnMoveReportE) that came after their ``%``."""
         self.error_state: CmmError | None = None
         self.abort_pending = False
         self._seen_notes: set[str] = set()
         try:
-            self._port = serial.serial_for_url(self.url, baudrate=self.config.baudrate, timeout=self.config.poll_s,
+            self._port = serial.serial_for_url(self.url, baudrate=self.config.baudrate, timeout=0,
                                                write_timeout=self.config.write_timeout_s)
         except (serial.SerialException, OSError, ValueError, TypeError) as err:
             raise CmmConnectionError(f"cannot open CMM port {self.url!r}: {err}") from err
+        try:
+            self._fd: int | None = self._port.fileno()
+        except (AttributeError, NotImplementedError, OSError, ValueError, serial.SerialException):
+            self._fd = None
         log.info("cmm.opened", url=self.url)
 
     def close(self) -> None:
@@ -293,21 +301,24 @@ class IppLink:
                 return
             self._dispatch(raw)
 
-    def _fill(self, block: bool) -> None:
+    def _fill(self, wait_s: float) -> None:
+        """Wait up to ``wait_s`` for input (select on the port's descriptor where it has one, else a poll interval)
+        and take in all that has arrived."""
         try:
-            if block:
-                chunk = self._port.read(1)
-                waiting = self._port.in_waiting if chunk else 0
-            else:
-                chunk, waiting = b"", self._port.in_waiting
-            if waiting:
-                chunk += self._port.read(waiting)
-        except (serial.SerialException, OSError) as err:
+            if self._fd is not None:
+                ready, _, _ = select.select([self._fd], [], [], max(wait_s, 0.0))
+                if not ready:
+                    return
+            elif wait_s > 0:
+                time.sleep(min(wait_s, self.config.poll_s))
+            while chunk := self._port.read(65536):
+                self._rx += chunk
+        except (serial.SerialException, OSError, ValueError) as err:
             raise CmmConnectionError(f"reading from {self.url!r} failed: {err}") from err
-        self._rx += chunk
 
     def _read_line(self, deadline: float, block: bool = True) -> bytes | None:
-        """The next line without its terminator, or None at the deadline (a partial line stays buffered)."""
+        """The next line without its terminator, or None at the deadline (a partial line stays buffered); without
+        ``block`` only what has already arrived."""
         filled = False
         while True:
             end = self._rx.find(b"\n")
@@ -322,9 +333,10 @@ class IppLink:
                 line = bytes(self._rx)
                 self._rx.clear()
                 return line
-            if (not block and filled) or (block and time.monotonic() >= deadline):
+            left = deadline - time.monotonic()
+            if (not block and filled) or (block and left <= 0):
                 return None
-            self._fill(block)
+            self._fill(left if block else 0.0)
             filled = True
 
     def discard_partial(self) -> None:
@@ -407,6 +419,7 @@ class IppLink:
 
     def _event(self, line: ResponseLine) -> None:
         self.events.append(ServerEvent(line, time.monotonic()))
+        self.events_total += 1
         e = line.error
         if e is None:
             log.info("cmm.event", line=line.raw)

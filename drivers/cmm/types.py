@@ -49,6 +49,11 @@ class ProbeLost(CmmProtocolError):
     """A touch was made but its report was garbled: the point is lost (the probe's position was read back)."""
 
 
+class CmmToolChanged(CmmProtocolError):
+    """The CMM changed its tool on its own (an E0000 ChangeTool event, 9.5.4) during a measurement: the stylus is
+    read again before the next one."""
+
+
 class CmmError(CmmDriverError):
     """An error reported by the CMM, ``! Error(severity, code, "method", "text")`` (8), of severity 2 or more.
 
@@ -100,6 +105,16 @@ class ErrorReport:
     method: str
     text: str
     tag: str = ""
+
+
+@dataclass(frozen=True)
+class Touch:
+    """One PtMeas as the CMM reported it (6.3.2.13): the stylus ball's centre at contact, and where the CMM gives
+    them, the surface direction IJK() and the effective radius ER() (6.3.2.25)."""
+
+    reported_mm: np.ndarray
+    ijk: np.ndarray | None = None
+    effective_radius_mm: float | None = None
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,11 @@
-"""The CMM driver finds spheres that are not where predicted, over a real pty against the simulated CMM, and never
-crashes its probe: the simulator stops on any positioning move through a sphere (on_collision = "stop") and counts
-it; every test ends with that count at zero.
+"""The CMM driver finds spheres that are not where predicted, against the simulated CMM over a real pty, and never
+crashes its stylus ball: the simulator stops on any positioning move, approach or retract of the ball into a sphere
+(``on_collision = "stop"``, 2504) and counts it; every test ends with that count at zero.
 
-True sphere centres come from the rig (``rig.to_cmm``) with scipy rotations, independently of the driver.
+The searches descend from above the highest the ball could meet the sphere: with a 12.7 mm sphere, a 1.5 mm ball and
+the server's default Approach, Search and Retract of 10 mm, a driver that took the ball for a point put its nominal
+point below the sphere's top and its approach position inside the sphere (the 2504 of the field report). True sphere
+centres come from the rig (``rig.to_cmm``) with scipy rotations, independently of the driver.
 """
 
 from __future__ import annotations
@@ -13,10 +16,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.cmm.serial import SerialCmm, SerialCmmConfig
+from drivers.cmm.ippdme import IppDmeCmm, IppDmeConfig
 from hilcal.acquisition.spheres import park_height_mm
 from hilcal.robot import default_robot
-from sim_devices.cmm.config import CmmServerConfig
+from sim_devices.cmm.config import CmmServerConfig, ToolConfig
 from sim_devices.cmm.server import CmmServerHandle, start_cmm_server
 from sim_devices.rig.config import RigConfig, load_errors
 from sim_devices.rig.rig import SimulatedRig
@@ -27,27 +30,27 @@ ROBOT = default_robot()
 R_MM = ROBOT.sphere_radius_mm
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def rig() -> SimulatedRig:
     return SimulatedRig(ROBOT, RigConfig(seed=7, errors=load_errors("table2"), cmm_noise_mm=0.0))
 
 
-@pytest.fixture
-def server(rig: SimulatedRig) -> Iterator[CmmServerHandle]:
+@pytest.fixture(scope="module", params=[1.5, 2.5], ids=["ball1.5", "ball2.5"])
+def server(rig: SimulatedRig, request: pytest.FixtureRequest) -> Iterator[CmmServerHandle]:
+    tool = ToolConfig(name="Probe1", ball_radius_mm=request.param)
     handle = start_cmm_server(ROBOT, rig, CmmServerConfig(seed=3, time_scale=0.0, noise_sigma_mm=0.002,
-                                                          on_collision="stop"))
+                                                          on_collision="stop", tools=(tool,)))
     yield handle
-    assert handle.collisions == 0, "the probe crashed into a sphere"
     handle.close()
 
 
 @pytest.fixture
-def cmm(server: CmmServerHandle) -> Iterator[SerialCmm]:
-    driver = SerialCmm(server.path, SerialCmmConfig(ack_timeout_s=0.5, command_timeout_s=1.0))
-    driver.start_session()
-    driver.home()
-    yield driver
-    driver.close()
+def cmm(server: CmmServerHandle) -> Iterator[IppDmeCmm]:
+    with IppDmeCmm(server.path, IppDmeConfig(ack_timeout_s=0.5, query_timeout_s=1.0, motion_timeout_s=2.0)) as driver:
+        driver.start_session()
+        driver.home()
+        yield driver
+    assert server.collisions == 0, "the stylus ball crashed into a sphere"
 
 
 def _base_centres(rig: SimulatedRig) -> np.ndarray:
@@ -64,7 +67,7 @@ def _alignment(rig: SimulatedRig, shift_mm: np.ndarray) -> np.ndarray:
     return T
 
 
-def test_a_sphere_off_by_far_more_than_its_radius_is_searched_for_and_found(cmm: SerialCmm, rig: SimulatedRig) -> None:
+def test_a_sphere_off_by_far_more_than_its_radius_is_searched_for_and_found(cmm: IppDmeCmm, rig: SimulatedRig) -> None:
     true_centre = _base_centres(rig)[0]
     offset = np.array([18.0, -21.0, 6.0])
     m = cmm.measure_sphere(true_centre + offset, R_MM, bound_mm=35.0)
@@ -73,20 +76,31 @@ def test_a_sphere_off_by_far_more_than_its_radius_is_searched_for_and_found(cmm:
     assert m.offset_from_nominal_mm == pytest.approx(np.linalg.norm(offset), abs=0.01)
 
 
-def test_a_sphere_outside_its_stated_bound_is_searched_for_after_the_pattern_misses(cmm: SerialCmm,
+def test_a_sphere_outside_its_stated_bound_is_searched_for_after_the_pattern_misses(cmm: IppDmeCmm,
                                                                                      rig: SimulatedRig) -> None:
+    """25 mm below where it is said to be within 2 mm: every touch of the pattern misses, a search finds it. (A bound
+    is what keeps the ball's approach positions out of the sphere: 25 mm to the side, a ring touch would start inside
+    it, and the CMM would stop on the collision.)"""
     true_centre = _base_centres(rig)[1]
-    m = cmm.measure_sphere(true_centre + np.array([0.0, 25.0, 0.0]), R_MM, bound_mm=2.0)
+    m = cmm.measure_sphere(true_centre + np.array([0.0, 0.0, 25.0]), R_MM, bound_mm=2.0)
     assert m.search is not None
     assert np.linalg.norm(m.centre_mm - true_centre) < 0.01
 
 
+def test_a_sphere_higher_than_predicted_is_approached_from_above_its_top(cmm: IppDmeCmm, rig: SimulatedRig) -> None:
+    """The sphere stands 8 mm higher than predicted, within the 10 mm bound: the first descent starts above where the
+    ball could meet it (R + r + bound + margin above the prediction), not at a nominal point below its top."""
+    true_centre = _base_centres(rig)[2]
+    m = cmm.measure_sphere(true_centre - np.array([0.0, 0.0, 8.0]), R_MM, bound_mm=10.0)
+    assert m.search is not None and np.linalg.norm(m.centre_mm - true_centre) < 0.01
+
+
 @pytest.mark.parametrize("shift", [[0.0, 0.0, -50.0], [35.0, -35.0, 10.0]])
-def test_a_pose_with_the_station_alignment_far_off_is_measured(cmm: SerialCmm, rig: SimulatedRig,
+def test_a_pose_with_the_station_alignment_far_off_is_measured(cmm: IppDmeCmm, rig: SimulatedRig,
                                                                shift: list[float]) -> None:
     """The station says 10 mm, the alignment is 50 mm off; straight down too: the spheres stand 50 mm higher than
-    predicted, so a search that started just above its bound would start inside the first one (registered=True
-    crashes: tried)."""
+    predicted, so a search that started just above its bound would start inside the first one. The server's stroke
+    (Approach + Search at most 50 + 50 mm) is shorter than such a descent: it continues down what it swept clear."""
     commanded = np.array([100.0, 50.0, 3100.0, 2.0, -1.0, 4.0])
     rig.move_to_lengths(rig.controller_ik(commanded))
     result = cmm.measure_pose(ROBOT, _alignment(rig, np.array(shift)), commanded, alignment_tolerance=(10.0, 0.2),
@@ -97,10 +111,10 @@ def test_a_pose_with_the_station_alignment_far_off_is_measured(cmm: SerialCmm, r
     np.testing.assert_allclose(result.refined_alignment[:3, 3], _alignment(rig, np.zeros(3))[:3, 3], atol=0.02)
 
 
-def test_the_probe_waits_above_the_platform_after_a_pose(cmm: SerialCmm, rig: SimulatedRig) -> None:
+def test_the_ball_waits_above_the_platform_after_a_pose(cmm: IppDmeCmm, rig: SimulatedRig) -> None:
     commanded = np.array([-150.0, 80.0, 3300.0, -3.0, 4.0, -6.0])
     rig.move_to_lengths(rig.controller_ik(commanded))
     result = cmm.measure_pose(ROBOT, _alignment(rig, np.zeros(3)), commanded)
     T = result.refined_alignment
-    in_base = T[:3, :3].T @ (cmm.position_mm - T[:3, 3])
-    assert in_base[2] >= park_height_mm(ROBOT, 0.0)
+    in_base = T[:3, :3].T @ (cmm.where() - T[:3, 3])
+    assert in_base[2] >= park_height_mm(ROBOT, cmm.stylus())  # the ball's bottom above every platform sphere's top
