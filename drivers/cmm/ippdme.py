@@ -95,10 +95,22 @@ class IppDmeCmm(CmmInterface):
         self.limits: dict[str, float] = {}
         """The CMM's Min and Max of the touch settings (``Approach.Max``...), where it states them."""
         self._events_seen = 0
+        self._in_session = False
 
     def close(self) -> None:
-        """Close the connection (a session is not ended: ``end_session()`` first if it should be)."""
+        """End the session if one is open (6.3.1.2: then the client may close the connection; a serial CMM cannot
+        tell that its client went away), and close the connection."""
+        if self._in_session and self.is_open:
+            try:
+                self.end_session()
+            except CmmDriverError as err:
+                log.warning("cmm.end_session_failed", error=str(err))
         self.link.close()
+
+    @property
+    def is_open(self) -> bool:
+        """The connection is open."""
+        return bool(self.link._port.is_open)
 
     # ------------------------------------------------------------------ transactions
 
@@ -168,6 +180,7 @@ class IppDmeCmm(CmmInterface):
     # ------------------------------------------------------------------ session, identity, tool, stylus
 
     def _start_session(self) -> None:
+        self._in_session = True
         try:
             self._query(Method.START_SESSION)
         except CmmError as err:
@@ -193,6 +206,7 @@ class IppDmeCmm(CmmInterface):
                  tools=self.tools, active_tool=self.active_tool)
 
     def end_session(self) -> None:
+        self._in_session = False
         self._query(Method.END_SESSION)
 
     def _home(self, force: bool) -> np.ndarray:
