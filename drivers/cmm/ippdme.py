@@ -34,7 +34,7 @@ from pydantic import Field
 
 from drivers.cmm import answers
 from drivers.cmm.base import CmmInterface
-from drivers.cmm.link import IppLink, LinkConfig, LinkGarbled, LinkTimeout, Transaction
+from drivers.cmm.link import IppLink, LinkConfig, LinkGarbled, LinkTimeout, Transaction, raise_for
 from drivers.cmm.transcript import TranscriptSink
 from drivers.cmm.types import (
     CmmConnectionError,
@@ -152,6 +152,13 @@ class IppDmeCmm(CmmInterface):
             log.error("cmm.position_unknown_after_abort", error=str(err3))
             position = None
         self.position_mm = position
+        stopped = [e for e in tx.unsolicited if e.severity >= NEEDS_CLEAR]
+        if stopped:  # an emergency stop came meanwhile: it is what the caller gets, and nothing moves until cleared
+            self.link.error_state = raise_for(stopped, tuple(stopped))
+            raise self.link.error_state from err
+        if status:
+            self.link.error_state = CmmError(Code.MACHINE_IN_ERROR_STATE, "Machine in error state", 3,
+                                             Method.GET_ERR_STATUS_E, tx.tag)
         completed = tx.done and not tx.garbled and not any(e.severity >= NEEDS_CLEAR for e in tx.errors)
         if completed:
             log.warning("cmm.motion_completed_late", command=tx.line)

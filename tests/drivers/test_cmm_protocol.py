@@ -226,6 +226,27 @@ def test_an_emergency_stop_during_a_motion_raises_after_its_percent(peer_factory
     assert cmm.position_mm is None
 
 
+def test_an_emergency_stop_during_a_motion_the_server_never_completes_is_what_the_recovery_raises(
+        peer_factory) -> None:
+    """No '%' after the stop: the driver's AbortE recovery runs (AbortE, ClearAllErrors, status, position) and raises
+    the emergency stop, not a timeout; nothing moves until clear_errors()."""
+    stop = 'E0000 ! Error(3, 0500, "HealthCheck", "Emergency stop")'
+    moves = iter([["TAG &", stop], ["TAG &", "TAG %"]])
+    peer, cmm, _ = peer_factory({"GoTo": lambda line: next(moves)})
+    cmm.start_session()
+    cmm.home()
+    with pytest.raises(CmmEmergencyStop):
+        cmm.goto(np.zeros(3))
+    assert [c[6:] for c in peer.received[-5:]] == ["AbortE()", "ClearAllErrors()", "GetErrStatusE()",
+                                                   "GetXtdErrStatus()", "Get(X(), Y(), Z())"]
+    with pytest.raises(CmmInErrorState):
+        cmm.goto(np.zeros(3))
+    assert len(peer.commands("GoTo")) == 1
+    cmm.clear_errors()  # released at the machine, then cleared
+    cmm.goto(np.zeros(3))
+    assert len(peer.commands("GoTo")) == 2
+
+
 def test_a_tool_changed_by_the_server_is_read_again(peer_factory) -> None:
     from drivers.cmm.types import CmmToolChanged
 
