@@ -46,7 +46,16 @@ from drivers.cmm.types import (
     ErrorReport,
     ProbeMiss,
 )
-from drivers.cmm.wire import Arg, LineSyntaxError, ResponseLine, check_command, command_line, format_tag, parse_response
+from drivers.cmm.wire import (
+    Arg,
+    Item,
+    LineSyntaxError,
+    ResponseLine,
+    check_command,
+    command_line,
+    format_tag,
+    parse_response,
+)
 from hilcal.protocols.ippdme import (
     DEFAULT_TCP_PORT,
     ENCODING,
@@ -140,6 +149,23 @@ class ServerEvent:
 
     line: ResponseLine
     received_s: float
+
+    @property
+    def kind(self) -> str:
+        """``error`` or the server event's name (9.5: KeyPress, GoTo, PtMeas, ChangeTool, SetProp)."""
+        if self.line.error is not None:
+            return "error"
+        first = self.line.values[0] if self.line.values else None
+        return first.name if isinstance(first, Item) else "data"
+
+    @property
+    def error(self) -> CmmError | None:
+        """The typed error of an unsolicited error line (None for data)."""
+        e = self.line.error
+        if e is None:
+            return None
+        report = ErrorReport(e.severity, e.code, e.method, e.text, self.line.tag)
+        return error_class(e.code)(e.code, e.text, e.severity, e.method, self.line.tag, (report,))
 
 
 def normalise_url(url: str) -> str:

@@ -211,6 +211,8 @@ def test_an_emergency_stop_between_transactions_stops_the_next_motion_unsent(pee
         cmm.goto(np.zeros(3))
     assert isinstance(err.value.cause, CmmEmergencyStop)
     assert not peer.commands("GoTo") and "E0000 ! Error(3, 0500" in transcript.received()[-1]
+    (event,) = cmm.link.events
+    assert event.kind == "error" and isinstance(event.error, CmmEmergencyStop) and event.error.tag == "E0000"
 
 
 def test_an_emergency_stop_during_a_motion_raises_after_its_percent(peer_factory) -> None:
@@ -257,6 +259,7 @@ def test_a_tool_changed_by_the_server_is_read_again(peer_factory) -> None:
     time.sleep(0.1)
     with pytest.raises(CmmToolChanged):
         cmm.goto(np.zeros(3))
+    assert [e.kind for e in cmm.link.events] == ["ChangeTool"] and cmm.link.events[0].error is None
     assert cmm.stylus_radius_mm is None
     assert cmm.stylus() == 1.5 and peer.received[-1][6:].startswith("GetProp(Tool.PtMeasPar.Approach()")
 
