@@ -109,20 +109,20 @@ def _timed(targets: list[tuple[Any, str, Callable[[tuple], str]]]) -> Iterator[d
 
 def pose_breakdown(work: Path) -> tuple[dict[str, list[float]], dict]:
     """A near-instant run in this process with the pose loop's parts timed; (totals by part, phase figures)."""
-    import drivers.cmm.base as cmm_base
-    from drivers.cmm.serial import SerialCmm
+    import drivers.cmm.probing as cmm_probing
+    from drivers.cmm.link import IppLink
     from drivers.controller.hilcal_can import ControllerCan
     from procedures.cli.app import app
     from procedures.engine import Engine
     from procedures.journal import Journal
 
     targets = [(Engine, "_dispatch", lambda a: f"message {type(a[1]).__name__}"),
-               (SerialCmm, "transact", lambda a: "CMM command round trip"),
+               (IppLink, "wait", lambda a: "CMM command round trip"),
                (ControllerCan, "_wait_ack", lambda a: "CAN acknowledgement wait"),
                (ControllerCan, "_wait_in_position", lambda a: "CAN in-position wait"),
                (ControllerCan, "_send_frames", lambda a: "CAN frame send"),
-               (cmm_base, "fit_sphere_robust", lambda a: "sphere fit"),
-               (cmm_base, "fit_sphere", lambda a: "sphere fit"),
+               (cmm_probing, "fit_sphere_robust", lambda a: "sphere fit"),
+               (cmm_probing, "fit_sphere", lambda a: "sphere fit"),
                (Journal, "add_measurement", lambda a: "journal commit")]
     os.environ["HILCAL_RECORDS"] = str(work / "records.sqlite")
     with _timed(targets) as totals, contextlib.suppress(SystemExit):
@@ -148,7 +148,7 @@ def breakdown_table(totals: dict[str, list[float]], loop: dict) -> str:
     inpos, _ = row("… CAN in-position wait", "CAN in-position wait", "Status + Feedback after the acknowledgement")
     send, _ = row("… CAN frame send", "CAN frame send", "the 3 setpoint frames in one SLCAN write on the pty")
     measure, measure_ms = row("pose measurements (Measure)", "message Measure", "6 spheres, below")
-    cmm, cmm_ms = row("… CMM command round trips", "CMM command round trip", "GoTo or PtMeas over the pty")
+    cmm, cmm_ms = row("… CMM command round trips", "CMM command round trip", "I++ DME transactions over the pty")
     fits, fits_ms = row("… sphere fits", "sphere fit", "fixed-radius (with outlier test) and free-radius")
     journal, journal_ms = row("… journal commit", "journal commit", "SQLite WAL, synchronous=FULL, before moving on")
     settle, settle_ms = row("settle waits (Settle)", "message Settle", "the station's settle_s (0 here)")

@@ -82,7 +82,11 @@ class PoseInstrument(abc.ABC):
 
 
 class CmmPoseInstrument(PoseInstrument):
-    """A CMM: the robot file's tooling spheres, probed by ``drivers.cmm.probing``."""
+    """A CMM: the robot file's tooling spheres, probed by ``drivers.cmm.probing`` with the CMM's stylus.
+
+    ``prepare`` opens the session (a second one: EndSession first, 6.3.1), homes only when the CMM is not homed, and
+    activates the station's tool; an error state left from before (an emergency stop since released) is cleared
+    there, where an operator has set the machine going again, never in the middle of a pose."""
 
     kind = link = "cmm"
 
@@ -97,6 +101,7 @@ class CmmPoseInstrument(PoseInstrument):
     def prepare(self) -> None:
         self.cmm.start_session()
         self.cmm.home()
+        log.info("cmm.ready", address=self.address, stylus_radius_mm=self.cmm.stylus_radius_mm)
 
     def measure_pose(self, robot: Robot, expected_pose: np.ndarray, pose_cov: np.ndarray | None) -> MeasuredPose:
         registered = self.tolerance == (REGISTERED_MM, REGISTERED_DEG)

@@ -392,7 +392,7 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
         except SimulatorStartError as e:
             return RunExit(EXIT_INTERRUPTED, "", f"simulated devices did not start: {e}")
         try:
-            devices = stack.enter_context(open_devices(station))
+            devices = stack.enter_context(open_devices(station, run_folder=req.out_dir))
         except DeviceOpenError as e:
             return RunExit(EXIT_INTERRUPTED, run_id, f"cannot open the station's devices: {e}; the journal is kept, "
                            f"continue with: {resume_command(run_id, req.out_dir)}")

@@ -34,16 +34,17 @@ Example::
     [instrument]
     kind = "cmm"                  # the default; "tracker": a laser tracker ([tracker], procedures.sections.tracker)
 
-    [cmm]
-    url = "/dev/ttyUSB0"               # any pyserial URL, e.g. socket://10.0.0.5:1294
+    [cmm]                              # an I++ DME 1.4.3 server (drivers.cmm.ippdme)
+    url = "socket://10.0.0.5:1294"     # its TCP port (6.1; 1294 when omitted), or a serial line: /dev/ttyUSB0
+    tool = "Probe1"                    # the stylus to activate (ChangeTool); omit: the CMM's active tool
     alignment = [1250.0, -3400.0, -820.0, 0.0, 0.0, 90.0]   # T_cmm<-base: [x, y, z, roll, pitch, yaw] or 4x4
     alignment_tolerance_mm = 10.0      # how far off the alignment may be (the first pose searches the base spheres)
     alignment_tolerance_deg = 0.2
     identity = "Leitz PMM-C, serial 4711"   # for the certificate (procedures.signoff.CmmIdentity)
     stated_uncertainty_mm = 0.004      # expanded U (k = 2) of one measured sphere-centre coordinate
     calibration_due = 2027-03-31       # the CMM's own calibration
-    [cmm.serial]                       # drivers.cmm.serial.SerialCmmConfig
-    command_timeout_s = 30.0
+    [cmm.ippdme]                       # drivers.cmm.ippdme.IppDmeConfig: waits, homing
+    motion_timeout_s = 60.0
     [cmm.probing]                      # drivers.cmm.base.ProbingConfig
     probe_sigma_mm = 0.002
 
@@ -85,7 +86,8 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from drivers.cmm.base import ProbingConfig, as_transform
-from drivers.cmm.serial import SerialCmm, SerialCmmConfig
+from drivers.cmm.ippdme import IppDmeCmm, IppDmeConfig
+from drivers.cmm.transcript import TRANSCRIPT_NAME, TranscriptFile
 from drivers.cmm.types import DEFAULT_ALIGNMENT_DEG, DEFAULT_ALIGNMENT_MM
 from drivers.controller.base import ControllerInterface, ParameterInterface
 from drivers.controller.hilcal_can import ControllerCan
@@ -175,10 +177,14 @@ class ModbusSection(_Strict):
 
 
 class CmmSection(CmmIdentity):
-    """The CMM: a pyserial URL, the approximate T_cmm<-base, transport and probing options; for the certificate
-    its identity, stated uncertainty and calibration due date (``procedures.signoff.CmmIdentity``)."""
+    """The CMM, an I++ DME server: its URL, the stylus to use, the approximate T_cmm<-base, protocol and probing
+    options; for the certificate its identity, stated uncertainty and calibration due date
+    (``procedures.signoff.CmmIdentity``)."""
 
-    url: str = Field(description="pyserial URL: /dev/ttyUSB0, socket://HOST:PORT, ...")
+    url: str = Field(min_length=1, description="socket://HOST:1294 (I++ DME's TCP port, 6.1; the port may be "
+                     "omitted), or a pyserial URL of a serial line: /dev/ttyUSB0, ...")
+    tool: str | None = Field(default=None, min_length=1, max_length=64, pattern=r'^[ !#-~]+$',
+                             description="the stylus to activate (ChangeTool, 6.3.2.18); None: the CMM's active tool")
     alignment: list[Any] = Field(
         description="T_cmm<-base, good to a few mm: a 4x4 matrix or [x, y, z mm, roll, pitch, yaw deg]"
     )
@@ -187,7 +193,7 @@ class CmmSection(CmmIdentity):
                                           "puts it (the first pose searches that far)")
     alignment_tolerance_deg: float = Field(default=DEFAULT_ALIGNMENT_DEG, ge=0, le=5.0,
                                            description="how far `alignment` may be turned")
-    serial: SerialCmmConfig = Field(default_factory=SerialCmmConfig)
+    ippdme: IppDmeConfig = Field(default_factory=IppDmeConfig)
     probing: ProbingConfig = Field(default_factory=ProbingConfig)
 
     @field_validator("alignment")
@@ -367,7 +373,7 @@ class Devices:
     """``ControllerCan`` (hilcal's message set) or ``CanopenController``."""
     params: ParameterInterface
     """``ControllerParams`` (Modbus) or ``CanopenParams`` (the same CANopen link as the controller)."""
-    cmm: SerialCmm | None
+    cmm: IppDmeCmm | None
     cmm_alignment: np.ndarray | None
     """(4, 4) T_cmm<-base from the station file (None: the station measures with a laser tracker)."""
     instrument: PoseInstrument
@@ -389,13 +395,14 @@ class Devices:
         self.close()
 
 
-def open_devices(station: StationConfig, *, check: bool = True) -> Devices:
+def open_devices(station: StationConfig, *, check: bool = True, run_folder: str | Path | None = None) -> Devices:
     """Open the controller (hilcal's CAN message set, or CANopen), its parameter interface (Modbus, or the CANopen
     controller's own) and the measuring instrument of a station.
 
     With ``check`` the controller must send a heartbeat within ``motion.connect_timeout_s`` and the parameter
-    interface must identify as a compatible controller. DeviceOpenError (naming the device) if anything fails;
-    whatever was opened before is closed again.
+    interface must identify as a compatible controller. With a ``run_folder`` the CMM's conversation is kept there,
+    every line as on the wire (``instrument_transcript.txt``, appended to on a resumed run: ``drivers.cmm.transcript``).
+    DeviceOpenError (naming the device) if anything fails; whatever was opened before is closed again.
     """
     try:
         robot = load_robot(station.robot)
@@ -415,7 +422,12 @@ def open_devices(station: StationConfig, *, check: bool = True) -> Devices:
                     (t.alignment_tolerance_mm, t.alignment_tolerance_deg), platform, base, t.environment_setting(),
                     t.reflector, t.search, (t.mpe_constant_um, t.mpe_per_m_um))
             else:
-                cmm = SerialCmm(station.cmm.url, station.cmm.serial, station.cmm.probing)
+                transcript = None
+                if run_folder is not None:
+                    transcript = TranscriptFile(Path(run_folder) / TRANSCRIPT_NAME)
+                    stack.callback(transcript.close)
+                cmm = IppDmeCmm(station.cmm.url, station.cmm.ippdme, station.cmm.probing, transcript,
+                                station.cmm.tool)
                 stack.callback(cmm.close)
                 alignment = station.cmm.alignment_matrix()
                 instrument = CmmPoseInstrument(cmm, station.cmm.url, alignment, (station.cmm.alignment_tolerance_mm,

@@ -61,7 +61,8 @@ def _describe(channels: dict[str, Any], handle: SimHandle) -> str:
                   f"  EDS           {co['eds']}"]
     if "cmm" in channels:
         cmm = channels["cmm"]
-        lines += [f"  CMM           {cmm['url']}" + (f"   or {cmm['socket_url']}" if cmm["socket_url"] else ""),
+        lines += [f"  CMM           {cmm['url']}" + (f"   or {cmm['socket_url']}" if cmm["socket_url"] else "")
+                  + "   (I++ DME 1.4.3)",
                   "  CMM alignment T_cmm<-base (approximate, as a station's CMM set-up gives it):",
                   _rows(channels["cmm_alignment"])]
     if "tracker" in channels:

@@ -25,13 +25,17 @@ Example configuration (every key optional; relative paths are relative to the fi
     [controller.can_faults]
     drop_rate = 0.001
 
-    [cmm]                           # CmmServerConfig (time_scale defaults to 0.0005, tcp_port to 0 here)
-    noise_sigma_mm = 0.002          # probing noise per coordinate
+    [cmm]                           # CmmServerConfig, I++ DME 1.4.3 (time_scale defaults to 0.0005, tcp_port to 0)
+    noise_sigma_mm = 0.002          # noise of a latched ball centre per coordinate
     stated_uncertainty_mm = 0.004   # U (k = 2) per sphere-centre coordinate it states (default 2 x noise_sigma_mm)
     alignment_error_mm = 2.0        # error of the published T_cmm<-base (a station's rough CMM set-up)
     alignment_error_deg = 0.02
-    on_collision = "stop"           # a crash latches 2504 (the default; "count": logged, the probe passes)
-    probing_speed_mm_s = 10.0       # the probing stroke; probe_time_s (0.05) per touch, travel_speed_mm_s (250)
+    on_collision = "stop"           # a crash is 2504 Collision (the default; "count": logged, the ball passes)
+    probing_speed_mm_s = 10.0       # PtMeasPar.Speed's default; probe_time_s (0.05) per touch, travel_speed_mm_s 250
+    active_tool = "Probe1"          # at power-up ("UnDefTool": a server that does not know which tool is loaded)
+    [[cmm.tools]]                   # the tool table (default: Probe1, a 1.5 mm ball, Approach/Search/Retract 10)
+    name = "Probe1"
+    ball_radius_mm = 1.5
     [cmm.faults]
     garbage = 0.01
 

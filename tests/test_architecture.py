@@ -154,7 +154,7 @@ def test_the_room_check_sees_a_forbidden_import() -> None:
     assert "discovery" in ROOM_MAY_IMPORT[_room("hilcal.reports.diagnosis")]
     assert "reports" not in ROOM_MAY_IMPORT[_room("hilcal.discovery.search")]
     assert "planning" not in ROOM_MAY_IMPORT[_room("hilcal.discovery.augmentation")]
-    assert _room("hilcal.robot") == "calibration" and _room("hilcal.protocols.cmm") == "protocols"
+    assert _room("hilcal.robot") == "calibration" and _room("hilcal.protocols.ippdme") == "protocols"
     found = {(e.source, e.target) for e in _edges()}
     assert ("hilcal.reports.diagnosis", "hilcal.discovery.result") in found
     assert ("hilcal.discovery.search", "hilcal.discovery") not in found  # its own package is already loaded

@@ -1,10 +1,17 @@
-"""The CMM interface: one small abstract transport API, the probe's tracked position, and the measurements.
+"""The CMM interface: one small abstract transport API, the stylus ball's tracked position, and the measurements.
 
-Like python-can's ``BusABC``: a transport module (``drivers.cmm.serial``) implements the primitive commands (session,
-homing, GoTo, one touch, the search distance); this class tracks where the probe is and counts its touches, and
-measures spheres and poses with the transport-independent strategy of ``drivers.cmm.probing``. The errors, results
-and settings live in ``drivers.cmm.types`` and are importable from here. All coordinates are in the CMM frame, mm;
-poses are [x, y, z mm, roll, pitch, yaw deg], R = Rz(yaw) Ry(pitch) Rx(roll).
+Like python-can's ``BusABC``: a protocol module (``drivers.cmm.ippdme``) implements the primitive commands (session,
+homing, GoTo, one touch, the touch settings, the position); this class tracks where the stylus ball is and counts its
+touches, and measures spheres and poses with the transport-independent strategy of ``drivers.cmm.probing``. The
+errors, results and settings live in ``drivers.cmm.types`` and are importable from here. All coordinates are in the
+CMM frame, mm; poses are [x, y, z mm, roll, pitch, yaw deg], R = Rz(yaw) Ry(pitch) Rx(roll).
+
+A touching probe's stylus ends in a ball of radius r (the CMM states it: Tool.AvrRadius(), 6.3.13), and PtMeas
+reports the ball's centre (6.3.2.13). So everything here is in ball-centre space: ``position_mm`` is the ball's
+centre, a touch starts with the ball's centre at ``start`` and reports the ball's centre at contact; a tooling sphere of
+radius R is touched when the ball's centre is R + r from its centre. The nominal point a touch sends is the surface
+point the ball would touch, start - (Approach + r)·IJK, so the approach position the specification defines, nominal +
+(Approach + r)·IJK, is exactly ``start``.
 """
 
 from __future__ import annotations
@@ -13,16 +20,19 @@ import abc
 from types import TracebackType
 
 import numpy as np
+import structlog
 
 from drivers.cmm.probing import Prober
 from drivers.cmm.types import (
     CmmConnectionError,
     CmmDriverError,
     CmmError,
+    CmmMotionTimeout,
     CmmProtocolError,
     CmmTimeout,
     PoseMeasurement,
     PoseMeasurementError,
+    ProbeLost,
     ProbeMiss,
     ProbeRecord,
     ProbeStatus,
@@ -30,58 +40,74 @@ from drivers.cmm.types import (
     SphereMeasurement,
     SphereMeasurementError,
     SphereSearch,
+    Touch,
+    TouchSettings,
     as_transform,
     transform_from_pose,
 )
 from hilcal.acquisition.spheres import SpherePrediction
 from hilcal.robot import Robot
 
-__all__ = ["CmmConnectionError", "CmmDriverError", "CmmError", "CmmInterface", "CmmProtocolError", "CmmTimeout",
-           "PoseMeasurement", "PoseMeasurementError", "ProbeMiss", "ProbeRecord", "ProbeStatus", "ProbingConfig",
-           "SphereMeasurement", "SphereMeasurementError", "SphereSearch", "as_transform", "transform_from_pose"]
+log = structlog.get_logger(__name__)
+
+__all__ = ["CmmConnectionError", "CmmDriverError", "CmmError", "CmmInterface", "CmmMotionTimeout",
+           "CmmProtocolError", "CmmTimeout", "PoseMeasurement", "PoseMeasurementError", "ProbeLost", "ProbeMiss",
+           "ProbeRecord", "ProbeStatus", "ProbingConfig", "SphereMeasurement", "SphereMeasurementError",
+           "SphereSearch", "Touch", "TouchSettings", "as_transform", "transform_from_pose"]
 
 
 class CmmInterface(abc.ABC):
-    """A coordinate measuring machine. Subclasses implement the transport primitives; not thread-safe."""
+    """A coordinate measuring machine with a ball stylus. Subclasses implement the primitives; not thread-safe."""
 
     probing: ProbingConfig = ProbingConfig()
     position_mm: np.ndarray | None = None
-    """Where the probe is (CMM frame), as far as this driver moved it; None until homed."""
-    search_mm: float | None = None
-    """The search distance the CMM has now (None: unknown)."""
+    """Where the stylus ball's centre is (CMM frame), as far as this driver knows; None: unknown (asked next time)."""
+    stylus_radius_mm: float | None = None
+    """The active tool's ball radius as the CMM states it (None: not read yet, or the tool changed)."""
+    touch: TouchSettings | None = None
+    """The touch settings the CMM has now, as read back (None: unknown)."""
     touches: int = 0
     """Touches made since the driver was opened (misses included)."""
+    _touch_request: tuple[float, float] | None = None
 
-    # ------------------------------------------------------------------ transport primitives
+    # ------------------------------------------------------------------ primitives
 
     @abc.abstractmethod
     def _start_session(self) -> None:
-        """Open a measurement session (the CMM's session settings, e.g. its search distance, are reset)."""
+        """Open a measurement session and learn the CMM (its version, class, tools)."""
 
     @abc.abstractmethod
     def end_session(self) -> None:
         """Close the measurement session."""
 
     @abc.abstractmethod
-    def _home(self) -> np.ndarray:
-        """Reference the machine axes; where the probe is afterwards (CMM frame)."""
+    def _home(self, force: bool) -> np.ndarray:
+        """Home the machine when it is not homed (or ``force``), activate the station's tool, read the stylus; where
+        the ball's centre is afterwards."""
+
+    @abc.abstractmethod
+    def _refresh_stylus(self) -> float:
+        """Read the active tool's ball radius (and what a touch reports) again; the radius."""
 
     @abc.abstractmethod
     def clear_errors(self) -> None:
-        """Leave the error state entered after a failed motion (a probe miss, a collision)."""
+        """Leave the error state entered after an error (a probe miss, a collision, an emergency stop released)."""
 
     @abc.abstractmethod
     def _goto(self, point_mm: np.ndarray) -> None:
-        """Move the probe in a straight line to a point without touching."""
+        """Move the ball's centre in a straight line to a point without touching."""
 
     @abc.abstractmethod
-    def _probe(self, point_mm: np.ndarray, ijk: np.ndarray) -> np.ndarray:
-        """Touch the surface near ``point_mm``: move straight to point + search * ijk, then approach along -ijk for up
-        to twice the search distance; the touched point (3,). ProbeMiss if none."""
+    def _probe(self, nominal_mm: np.ndarray, ijk: np.ndarray) -> Touch:
+        """PtMeas at this nominal surface point approaching along -ijk (unit); ProbeMiss if nothing was touched."""
 
     @abc.abstractmethod
-    def _set_search_distance(self, mm: float) -> None:
-        """Set the search distance of the touches that follow."""
+    def _set_touch(self, approach_mm: float, search_mm: float, retract_mm: float) -> TouchSettings:
+        """Set the touch settings; what the CMM has afterwards (it may clamp)."""
+
+    @abc.abstractmethod
+    def _where(self) -> np.ndarray:
+        """Ask the CMM where the ball's centre is."""
 
     @abc.abstractmethod
     def close(self) -> None:
@@ -98,41 +124,89 @@ class CmmInterface(abc.ABC):
     # ------------------------------------------------------------------ tracked primitives
 
     def start_session(self) -> None:
-        """Open a measurement session with the probing settings' search distance."""
+        """Open a measurement session (the CMM's touch settings are read again before the next touch)."""
+        self.touch, self._touch_request = None, None
         self._start_session()
-        self.search_mm = None
-        self.set_search_distance(self.probing.min_search_mm)
 
-    def home(self) -> None:
-        """Reference the machine axes; the probe is then at the machine's home position."""
+    def home(self, force: bool = False) -> None:
+        """Get ready to move: home the machine if it is not homed (or ``force``); the station's tool, the stylus."""
         self.position_mm = None
-        self.position_mm = np.asarray(self._home(), dtype=float)
+        self.position_mm = np.asarray(self._home(force), dtype=float)
 
-    def set_search_distance(self, mm: float) -> None:
-        """Set the touches' search distance (sent only when it changes)."""
-        if self.search_mm is None or abs(mm - self.search_mm) > 1e-9:
-            self._set_search_distance(mm)
-            self.search_mm = float(mm)
+    def stylus(self) -> float:
+        """The ball radius (read again after the CMM changed its tool)."""
+        if self.stylus_radius_mm is None:
+            self.stylus_radius_mm = float(self._refresh_stylus())
+        return self.stylus_radius_mm
+
+    def where(self) -> np.ndarray:
+        """Where the ball's centre is (asked when unknown)."""
+        if self.position_mm is None:
+            self.position_mm = np.asarray(self._where(), dtype=float)
+        return self.position_mm
+
+    def set_touch(self, approach_mm: float, search_mm: float) -> TouchSettings:
+        """Ask for these touch settings (the retract as long as the approach), sent only when they change; what the
+        CMM has: the caller plans with that."""
+        request = self._within_limits(round(float(approach_mm), 6), round(float(search_mm), 6))
+        if self.touch is None or request != self._touch_request:
+            self.touch = self._set_touch(request[0], request[1], request[0])
+            self._touch_request = request
+        return self.touch
+
+    def _within_limits(self, approach_mm: float, search_mm: float) -> tuple[float, float]:
+        """The request as the CMM would clamp it, where it states its limits (not sent just to be clamped)."""
+        return approach_mm, search_mm
 
     def goto(self, point_mm: np.ndarray) -> None:
-        """Move the probe in a straight line to a point (the caller keeps the line clear: ``drivers.cmm.probing``)."""
+        """Move the ball's centre in a straight line to a point (the caller keeps the line clear:
+        ``drivers.cmm.probing``)."""
         self.position_mm = None
         self._goto(point_mm)
         self.position_mm = np.asarray(point_mm, dtype=float).copy()
 
-    def probe(self, point_mm: np.ndarray, ijk: np.ndarray, search_mm: float | None = None) -> np.ndarray:
-        """Touch near ``point_mm`` approaching along -ijk (with this search distance, else the current one); the
-        touched point. The probe is left at the touch's start point, point + search * ijk."""
-        if search_mm is not None:
-            self.set_search_distance(search_mm)
+    def probe(self, start_mm: np.ndarray, ijk: np.ndarray) -> Touch:
+        """Touch from ``start`` (the approach position: the ball's centre) along -ijk with the current settings.
+
+        The ball then searches down to start - (Approach + Search)·ijk (a server may read the end of search as the
+        ball's centre there or as its surface, r shorter: the caller plans for the longer). Returns the touch with
+        ``reported_mm`` the ball's centre at contact. Afterwards the ball is where the specification puts it:
+        contact + Retract·ijk (Retract >= 0) or back at ``start`` (Retract < 0); after a miss (ProbeMiss) or a lost
+        report (ProbeLost) the errors are cleared and the CMM is asked.
+        """
+        r = self.stylus()
+        settings = self.touch or self.set_touch(*(self._touch_request or (self.probing.min_search_mm,) * 2))
         n = np.asarray(ijk, dtype=float)
-        start = np.asarray(point_mm, dtype=float) + (self.search_mm or 0.0) * n / np.linalg.norm(n)
+        n = n / np.linalg.norm(n)
+        start = np.asarray(start_mm, dtype=float)
+        nominal = start - (settings.approach_mm + r) * n
         self.position_mm = None
         self.touches += 1
         try:
-            return self._probe(point_mm, ijk)
-        finally:
-            self.position_mm = start
+            touch = self._probe(nominal, n)
+        except ProbeMiss:
+            self.clear_errors()
+            self.where()
+            raise
+        except ProbeLost:
+            self.where()
+            raise
+        self.position_mm = (touch.reported_mm + settings.retract_mm * n if settings.retract_mm >= 0
+                            else start.copy())
+        return touch
+
+    def ball_centre(self, touch: Touch, ijk: np.ndarray) -> tuple[np.ndarray, float | None]:
+        """The centre of a ball of the stated radius touching the surface point of ``touch``: its reported centre,
+        moved by the difference of its effective radius ER() (6.3.2.25) along the surface normal (the reported IJK()
+        where it points to the approach side, else the approach direction)."""
+        r = self.stylus()
+        if touch.effective_radius_mm is None:
+            return touch.reported_mm, None
+        n = np.asarray(ijk, dtype=float) / np.linalg.norm(ijk)
+        m = n
+        if touch.ijk is not None and np.linalg.norm(touch.ijk) > 0 and touch.ijk @ n > 0:
+            m = touch.ijk / np.linalg.norm(touch.ijk)
+        return touch.reported_mm - (touch.effective_radius_mm - r) * m, touch.effective_radius_mm
 
     # ------------------------------------------------------------------ measurements
 
@@ -142,10 +216,11 @@ class CmmInterface(abc.ABC):
         settings' ``default_bound_mm``), approaching from the ``up`` side (``drivers.cmm.probing``).
 
         Misses and outliers are recorded, never used, and touched again within ``max_reprobes``; a sphere not where
-        predicted is searched for. SphereMeasurementError when too few good points remain, the free-fit radius is
-        off by more than ``radius_tol_mm``, or no search finds the sphere. A centre more than ``prediction_tol_mm``
-        from where its probe pattern was laid out is measured once more around the fit (the first pass is kept as
-        ``superseded``). The probe ends above the sphere, clear of it for whatever move comes next.
+        predicted is searched for. SphereMeasurementError when too few good points remain, the free-fit radius less
+        the stylus radius is off the nominal by more than ``radius_tol_mm``, or no search finds the sphere. A centre
+        more than ``prediction_tol_mm`` from where its probe pattern was laid out is measured once more around the
+        fit (the first pass is kept as ``superseded``). The ball ends above the sphere, clear of it for whatever move
+        comes next.
         """
         up_v = np.asarray(up, dtype=float)
         bound = self.probing.default_bound_mm if bound_mm is None else bound_mm
@@ -162,15 +237,14 @@ class CmmInterface(abc.ABC):
 
         ``alignment`` is an approximate T_cmm<-base (4x4, or the (6,) pose of the base frame in the CMM frame) known
         to ``alignment_tolerance`` (mm, deg; default: 10 mm and 0.2 deg,
-        ``drivers.cmm.types.DEFAULT_ALIGNMENT_MM/DEG``);
-        ``expected_pose``
-        (default: the robot's home) predicts the platform spheres with ``pose_cov``, the (6, 6) covariance of its
-        [dt (mm); dw (rad)] in base axes (``hilcal.acquisition.model.PosePrediction``; default: ``default_bound_mm``
-        in translation). Each measured sphere conditions its body's frame, so the next is predicted better;
-        ``extra`` counts the touches and searches. An alignment not ``registered`` on measured base spheres yet (the
-        station's; the default) may be off beyond its tolerance: base-sphere searches then descend from
-        ``max_search_mm`` above the prediction. Pass a previous pose's ``refined_alignment`` with ``registered=True``
-        and a tight tolerance (``drivers.cmm.probing.REGISTERED_MM/DEG``) to skip that. The probe ends parked above
-        every place a platform sphere can reach.
+        ``drivers.cmm.types.DEFAULT_ALIGNMENT_MM/DEG``); ``expected_pose`` (default: the robot's home) predicts the
+        platform spheres with ``pose_cov``, the (6, 6) covariance of its [dt (mm); dw (rad)] in base axes
+        (``hilcal.acquisition.model.PosePrediction``; default: ``default_bound_mm`` in translation). Each measured
+        sphere conditions its body's frame, so the next is predicted better; ``extra`` counts the touches and
+        searches. An alignment not ``registered`` on measured base spheres yet (the station's; the default) may be
+        off beyond its tolerance: base-sphere searches then descend from ``max_search_mm`` above the prediction.
+        Pass a previous pose's ``refined_alignment`` with ``registered=True`` and a tight tolerance
+        (``drivers.cmm.probing.REGISTERED_MM/DEG``) to skip that. The ball ends parked above every place a platform
+        sphere can reach.
         """
         return Prober(self).measure_pose(robot, alignment, expected_pose, pose_cov, alignment_tolerance, registered)

@@ -1,12 +1,17 @@
 """How a CMM finds and measures tooling spheres and a platform pose, on any transport (``drivers.cmm.base``).
 
-Every sphere comes with a prediction and a bound (how far off it may be, ``hilcal.acquisition.spheres``). A sphere
+All of it happens in ball-centre space: the stylus ball (radius r, stated by the CMM) touches a sphere of radius R
+when its centre is R + r from the sphere's centre, so the ball's centre moves on and around spheres of radius R + r,
+the fits use R + r, and every region the ball keeps out of is a sphere's possible region grown by r. Every sphere
+comes with a prediction and a bound (how far off it may be, ``hilcal.acquisition.spheres``). A sphere
 predicted to within a fraction of its radius is probed at once: the touches start beyond where its surface could be
 and search as far past it. A less certain one is searched for first, as a CMM operator would: descents from above on
 a widening pattern until a touch, touches around that point, the centre from that cap; a sphere not found where a
 probe pattern expected it is searched for too, on a wider pattern each time, up to ``max_search_mm``. Every
-positioning move keeps out of the regions where any sphere could be (``hilcal.acquisition.routes``). Each measured
-sphere conditions its body's frame, so the next sphere of that body is predicted better.
+positioning move keeps out of the regions where any sphere could be (``hilcal.acquisition.routes``), and so does
+each touch's start (the approach position); a descent's search reaches r further than planned where a server reads
+the end of search as the ball's centre, and is kept clear of the other spheres for that longer stroke too. Each
+measured sphere conditions its body's frame, so the next sphere of that body is predicted better.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from drivers.cmm.types import (
     DEFAULT_ALIGNMENT_MM,
     PoseMeasurement,
     PoseMeasurementError,
+    ProbeLost,
     ProbeMiss,
     ProbeRecord,
     ProbeStatus,
@@ -32,11 +38,10 @@ from drivers.cmm.types import (
     as_transform,
     transform_from_pose,
 )
-from hilcal.acquisition.routes import Ball, plan_route
+from hilcal.acquisition.routes import Ball, plan_route, segment_distance
 from hilcal.acquisition.search import basis, cap_centre, cap_offsets, descent_offsets
 from hilcal.acquisition.spheres import BodyBelief, SpherePrediction, park_height_mm
 from hilcal.pose_measurement import pose_from_spheres, rigid_fit
-from hilcal.protocols.cmm import MAX_SEARCH_DISTANCE_MM
 from hilcal.robot import Robot
 from hilcal.sphere_fit import SphereFitError, fit_sphere, fit_sphere_robust, sphere_probe_pattern
 
@@ -63,41 +68,77 @@ def _up() -> np.ndarray:
 
 
 class Prober:
-    """One CMM's probing strategy (the CMM gives the tracked primitives ``goto``, ``probe`` and ``clear_errors``)."""
+    """One CMM's probing strategy (the CMM gives the tracked primitives ``where``, ``goto``, ``set_touch``, ``probe``
+    and the stylus radius)."""
 
     def __init__(self, cmm: Any) -> None:
         self.cmm = cmm
         self.cfg = cmm.probing
+        self.r = float(cmm.stylus())
+        """The stylus ball's radius."""
 
     # ------------------------------------------------------------------ moves
 
     def _go(self, point: np.ndarray, avoid: list[Ball], *, last: bool = True) -> None:
-        """Move the probe to `point` along a route clear of `avoid` (straight when nothing is in the way); without
+        """Move the ball to `point` along a route clear of `avoid` (straight when nothing is in the way); without
         `last`, only to the last waypoint before it (a touch's own positioning move goes the rest of the way)."""
-        start = self.cmm.position_mm
-        route = [point] if start is None else plan_route(start, point, avoid, _up())
+        route = plan_route(self.cmm.where(), point, avoid, _up())
         for waypoint in route if last else route[:-1]:
             self.cmm.goto(waypoint)
 
-    def _touch(self, target: np.ndarray, ijk: np.ndarray, search_mm: float, avoid: list[Ball],
+    def _touch(self, target: np.ndarray, ijk: np.ndarray, approach_mm: float, search_mm: float, avoid: list[Ball],
                records: list[ProbeRecord]) -> int | None:
-        """One touch from a clear start (routed there first), recorded; its record index, or None on a miss."""
-        self._go(target + search_mm * ijk, avoid, last=False)
+        """One touch expecting the ball's centre at `target`: it starts `approach_mm` out along `ijk` (routed there
+        clear of `avoid`) and searches `search_mm` past the target; recorded; its record index, or None on a miss."""
+        settings = self.cmm.set_touch(approach_mm, search_mm)
+        if settings.approach_mm + settings.search_mm < approach_mm + search_mm - 1e-6:
+            log.warning("cmm.touch_reach_short", asked_mm=approach_mm + search_mm,
+                        reach_mm=settings.approach_mm + settings.search_mm)
+        start = target + approach_mm * ijk
+        self._go(start, avoid, last=False)
+        return self._record(start, target, ijk, records)
+
+    def _record(self, start: np.ndarray, target: np.ndarray, ijk: np.ndarray, records: list[ProbeRecord]
+                ) -> int | None:
+        """Touch from `start` and record it (a miss as a miss); its record index, or None on a miss."""
         try:
-            point = self.cmm.probe(target, ijk, search_mm)
-        except ProbeMiss as miss:
-            log.info("cmm.probe_miss", target_mm=target.tolist(), ijk=ijk.tolist(), code=miss.code)
-            records.append(ProbeRecord(target, ijk, None, ProbeStatus.MISS, None, miss.text))
-            self.cmm.clear_errors()
+            touch = self.cmm.probe(start, ijk)
+        except (ProbeMiss, ProbeLost) as miss:
+            log.info("cmm.probe_miss", target_mm=target.tolist(), ijk=ijk.tolist(), error=str(miss))
+            records.append(ProbeRecord(target, ijk, None, ProbeStatus.MISS, None, str(miss)))
             return None
-        records.append(ProbeRecord(target, ijk, point, ProbeStatus.USED))
+        point, er = self.cmm.ball_centre(touch, ijk)
+        records.append(ProbeRecord(target, ijk, point, ProbeStatus.USED, effective_radius_mm=er))
         return len(records) - 1
+
+    def _descend(self, line: np.ndarray, up: np.ndarray, top: float, bottom: float, avoid: list[Ball],
+                 records: list[ProbeRecord]) -> int | None:
+        """A descent of the ball's centre along `up` through `line` from height `top` to `bottom`, in as many
+        touches as the CMM's stroke (Approach + Search, as it clamps them) needs: each continues where the last one's
+        search ended, down the corridor it swept clear. The touching record's index, or None."""
+        height, first = top, True
+        while height > bottom + 1e-6:
+            half = 0.5 * (height - bottom)
+            settings = self.cmm.set_touch(half, half)
+            start = line + height * up
+            if first:
+                self._go(start, avoid, last=False)
+            elif np.linalg.norm(np.cross(self.cmm.where() - line, up)) > 0.01:
+                log.warning("cmm.descent_stopped", at_mm=line.tolist(), where_mm=self.cmm.where().tolist(),
+                            reason="after the miss the CMM left the ball off the swept line")
+                return None
+            idx = self._record(start, start - settings.approach_mm * up, up, records)
+            if idx is not None:
+                return idx
+            height, first = height - (settings.approach_mm + settings.search_mm), False
+        return None
 
     # ------------------------------------------------------------------ one sphere
 
     def measure_sphere(self, pred: SpherePrediction, radius_mm: float, others: list[Ball] | None = None
                        ) -> SphereMeasurement:
-        """Find and measure one sphere (see the module docstring); SphereMeasurementError when it cannot be."""
+        """Find and measure one sphere of radius `radius_mm` (see the module docstring); SphereMeasurementError
+        when it cannot be."""
         others = others or []
         centre, bound, search = pred.centre_mm, pred.bound_mm, None
         if bound > self.cfg.search_fraction * radius_mm:
@@ -119,27 +160,38 @@ class Prober:
 
     def leave(self, m: SphereMeasurement, up: np.ndarray) -> None:
         """Back to clearance above a sphere just measured: the next move, which knows nothing of it, starts clear."""
-        region = Ball(m.centre_mm, m.radius_mm + self.cfg.route_margin_mm)
-        self._go(m.centre_mm + (m.radius_mm + self.cfg.clearance_mm) * up, [region])
+        reach = m.radius_mm + self.r
+        region = Ball(m.centre_mm, reach + self.cfg.route_margin_mm)
+        self._go(m.centre_mm + (reach + self.cfg.clearance_mm) * up, [region])
 
-    def _locate(self, pred: SpherePrediction, r: float, bound: float, others: list[Ball]) -> SphereSearch:
-        """Descend from above on widening lattices until a touch, then touch the cap around it (module docstring)."""
+    def _locate(self, pred: SpherePrediction, radius_mm: float, bound: float, others: list[Ball]) -> SphereSearch:
+        """Descend from above on widening lattices until a touch, then touch the cap around it (module docstring).
+
+        Each descent starts above the highest the ball could meet the sphere (R + r above the highest possible
+        centre, and a margin) and searches to below the lowest; each touch's nominal point is derived from the CMM's
+        actual Approach, so it starts where planned whatever the CMM clamps (``_descend``). The whole stroke, r
+        longer where a server reads the end of search as the ball's centre, keeps out of the other spheres'
+        regions (a descent that would not is skipped)."""
         cfg = self.cfg
+        reach = radius_mm + self.r
         x, y, up = basis(pred.up)
         m = cfg.search_margin_mm
         touches = 0
         stage = min(bound, cfg.max_search_mm)
         while True:
-            top, bottom = r + max(stage, pred.ceiling_mm) + m, -(stage + m)
-            half = min(0.5 * (top - bottom), MAX_SEARCH_DISTANCE_MM)
-            region = Ball(pred.centre_mm, r + stage + cfg.route_margin_mm)
+            top, bottom = reach + max(stage, pred.ceiling_mm) + m, -(stage + m)
+            region = Ball(pred.centre_mm, reach + stage + cfg.route_margin_mm)
             log.info("cmm.sphere_search", predicted_mm=pred.centre_mm.tolist(), bound_mm=stage)
-            for offset in descent_offsets(r, stage):
-                target = pred.centre_mm + offset[0] * x + offset[1] * y + (top - half) * up
+            for offset in descent_offsets(reach, stage):
+                line = pred.centre_mm + offset[0] * x + offset[1] * y
+                if any(segment_distance(line + top * up, line + (bottom - self.r) * up, b.centre_mm) < b.radius_mm
+                       for b in others):
+                    log.warning("cmm.descent_skipped", at_mm=line.tolist(), reason="another sphere's region")
+                    continue
                 records: list[ProbeRecord] = []
                 touches += 1
-                if self._touch(target, up, half, [*others, region], records) is not None:
-                    found = self._cap(records[-1].point_mm, r, up, others)
+                if self._descend(line, up, top, bottom, [*others, region], records) is not None:
+                    found = self._cap(records[-1].point_mm, reach, up, others)
                     touches += found[1]
                     return SphereSearch(pred.centre_mm, stage, touches, found[0])
             if stage >= cfg.max_search_mm:
@@ -148,44 +200,46 @@ class Prober:
                     f"prediction ({touches} descents): check the station's alignment and the sphere's mounting")
             stage = min(2.0 * stage, cfg.max_search_mm)
 
-    def _cap(self, first: np.ndarray, r: float, up: np.ndarray, others: list[Ball]) -> tuple[np.ndarray, int]:
-        """The centre from descents around a first touch on the cap (the first touch alone: the pole below it)."""
+    def _cap(self, first: np.ndarray, reach: float, up: np.ndarray, others: list[Ball]) -> tuple[np.ndarray, int]:
+        """The centre from descents around a first touch on the cap (the first touch alone: the pole below it);
+        `reach` is R + r, the ball centre's distance from the sphere's centre at a touch."""
         x, y, _ = basis(up)
         m = self.cfg.search_margin_mm
-        # The centre lies within r of the touch and not above it: nothing of the sphere is higher than touch + r,
-        # and all of it lies within this ball.
-        region = Ball(first - 2.0 * r * up, 3.0 * r + self.cfg.route_margin_mm)
+        # The centre lies within `reach` of the touch and not above it: nothing the ball can meet is higher than
+        # touch + reach, and all of it lies within this ball.
+        region = Ball(first - 2.0 * reach * up, 3.0 * reach + self.cfg.route_margin_mm)
         points, touches = [first], 0
-        for offset in cap_offsets(r):
+        for offset in cap_offsets(reach):
             target = first + offset[0] * x + offset[1] * y
             records: list[ProbeRecord] = []
             touches += 1
-            if self._touch(target, up, r + m, [*others, region], records) is not None:
+            if self._touch(target, up, reach + m, reach + m, [*others, region], records) is not None:
                 points.append(records[-1].point_mm)
             if len(points) >= 4:
                 break
         try:
-            centre, _ = cap_centre(np.array(points), r, up)
+            centre, _ = cap_centre(np.array(points), reach, up)
         except ValueError:
-            centre = first - r * up
+            centre = first - reach * up
         return centre, touches
 
-    def _pattern(self, centre: np.ndarray, r: float, bound: float, up: np.ndarray, others: list[Ball]
+    def _pattern(self, centre: np.ndarray, radius_mm: float, bound: float, up: np.ndarray, others: list[Ball]
                  ) -> SphereMeasurement:
         """One pass of the probe pattern around `centre` (the sphere within `bound` of it): misses and outliers
         touched again within the re-probe budget; SphereMeasurementError when too few good points remain."""
         cfg = self.cfg
+        reach = radius_mm + self.r
         search = max(cfg.min_search_mm, bound + cfg.search_margin_mm)
-        avoid = [*others, Ball(centre, r + bound + cfg.route_margin_mm)]
-        targets, normals = sphere_probe_pattern(centre, r, up, cfg.n_ring, cfg.elevations_deg)
-        self._go(centre + (r + max(cfg.clearance_mm, search + cfg.search_margin_mm)) * normals[0], avoid)
-        # The pole last: the probe then leaves the sphere from above it, clear of it on the way to the next one.
+        avoid = [*others, Ball(centre, reach + bound + cfg.route_margin_mm)]
+        targets, normals = sphere_probe_pattern(centre, reach, up, cfg.n_ring, cfg.elevations_deg)
+        self._go(centre + (reach + max(cfg.clearance_mm, search + cfg.search_margin_mm)) * normals[0], avoid)
+        # The pole last: the ball then leaves the sphere from above it, clear of it on the way to the next one.
         targets, normals = np.roll(targets, -1, axis=0), np.roll(normals, -1, axis=0)
         records: list[ProbeRecord] = []
         good: list[tuple[int, int]] = []
         missed: list[int] = []
         for k in range(len(targets)):
-            idx = self._touch(targets[k], normals[k], search, avoid, records)
+            idx = self._touch(targets[k], normals[k], search, search, avoid, records)
             (missed.append(k) if idx is None else good.append((k, idx)))
         budget = self._reprobe(missed, targets, normals, search, avoid, records, good, cfg.max_reprobes)
         threshold = cfg.outlier_threshold_mm
@@ -196,14 +250,14 @@ class Prober:
                     f"(need {cfg.min_points}) after {len(records)} touches", tuple(records))
             pts = np.array([records[i].point_mm for _, i in good])
             try:
-                robust = fit_sphere_robust(pts, r, threshold, centre)
+                robust = fit_sphere_robust(pts, reach, threshold, centre)
             except SphereFitError as err:
                 raise SphereMeasurementError(f"sphere near {centre.tolist()} mm: {err}", tuple(records)) from err
             for j in robust.outliers:
                 rec, residual = records[good[j][1]], float(robust.residuals_mm[j])
                 log.warning("cmm.probe_outlier", point_mm=rec.point_mm.tolist(), residual_mm=residual)
-                records[good[j][1]] = ProbeRecord(rec.target_mm, rec.ijk, rec.point_mm, ProbeStatus.OUTLIER,
-                                                  residual, "residual over threshold")
+                records[good[j][1]] = dataclasses.replace(rec, status=ProbeStatus.OUTLIER, residual_mm=residual,
+                                                          detail="residual over threshold")
             if robust.inliers.all():
                 break
             retry = [good[j][0] for j in robust.outliers]
@@ -211,7 +265,7 @@ class Prober:
             if budget == 0:
                 break
             budget = self._reprobe(retry, targets, normals, search, avoid, records, good, budget)
-        return self._judge(centre, r, robust.fit, good, records, threshold)
+        return self._judge(centre, radius_mm, robust.fit, good, records, threshold)
 
     def _reprobe(self, indices: list[int], targets: np.ndarray, normals: np.ndarray, search: float,
                  avoid: list[Ball], records: list, good: list[tuple[int, int]], budget: int) -> int:
@@ -220,43 +274,46 @@ class Prober:
             if budget == 0:
                 break
             budget -= 1
-            idx = self._touch(targets[k], normals[k], search, avoid, records)
+            idx = self._touch(targets[k], normals[k], search, search, avoid, records)
             if idx is not None:
                 good.append((k, idx))
         return budget
 
-    def _judge(self, centre: np.ndarray, r: float, fit: Any, good: list[tuple[int, int]], records: list,
+    def _judge(self, centre: np.ndarray, radius_mm: float, fit: Any, good: list[tuple[int, int]], records: list,
                threshold: float) -> SphereMeasurement:
-        """The fitted sphere with its checks: enough consistent points, the radius determined and right."""
+        """The fitted sphere with its checks: enough consistent points, the radius determined and right (the free
+        fit's radius, less the stylus radius, against the sphere's)."""
         cfg = self.cfg
+        reach = radius_mm + self.r
         used = np.array([records[i].point_mm for _, i in good])
-        final = _finalise(records, fit.centre_mm, r)
+        final = _finalise(records, fit.centre_mm, reach)
+        where = f"sphere near {np.round(centre, 3).tolist()} mm"
         if len(used) < cfg.min_points:
             raise SphereMeasurementError(
-                f"sphere near {np.round(centre, 3).tolist()} mm: only {len(used)} consistent points "
-                f"(need {cfg.min_points}; outlier threshold {threshold:.4f} mm) after {len(records)} touches", final)
+                f"{where}: only {len(used)} consistent points (need {cfg.min_points}; outlier threshold "
+                f"{threshold:.4f} mm) after {len(records)} touches", final)
         try:
             free = fit_sphere(used, None, fit.centre_mm)
         except SphereFitError as err:
-            raise SphereMeasurementError(f"sphere near {centre.tolist()} mm: radius check: {err}", final) from err
+            raise SphereMeasurementError(f"{where}: radius check: {err}", final) from err
         radius_sd_mm = free.radius_sd_unit * max(cfg.probe_sigma_mm, fit.sigma_hat_mm)
         if not radius_sd_mm <= cfg.radius_tol_mm / 3.0:
             raise SphereMeasurementError(
-                f"sphere near {np.round(centre, 3).tolist()} mm: the used points determine the radius only to "
-                f"{radius_sd_mm:.4f} mm, too poorly for the {cfg.radius_tol_mm} mm radius check", final)
+                f"{where}: the used points determine the radius only to {radius_sd_mm:.4f} mm, too poorly for the "
+                f"{cfg.radius_tol_mm} mm radius check", final)
         if np.any(np.abs(fit.residuals_mm) > threshold):
             raise SphereMeasurementError(
-                f"sphere near {np.round(centre, 3).tolist()} mm: residuals up to "
-                f"{np.max(np.abs(fit.residuals_mm)):.4f} mm exceed the outlier threshold {threshold:.4f} mm "
-                "with no touches left to reject", final)
-        if abs(free.radius_mm - r) > cfg.radius_tol_mm:
+                f"{where}: residuals up to {np.max(np.abs(fit.residuals_mm)):.4f} mm exceed the outlier threshold "
+                f"{threshold:.4f} mm with no touches left to reject", final)
+        if abs(free.radius_mm - reach) > cfg.radius_tol_mm:
             raise SphereMeasurementError(
-                f"sphere near {np.round(centre, 3).tolist()} mm: free-fit radius {free.radius_mm:.4f} mm differs "
-                f"from the nominal {r} mm by more than {cfg.radius_tol_mm} mm", final)
+                f"{where}: the ball centres lie on a sphere of radius {free.radius_mm:.4f} mm; less the stylus's "
+                f"{self.r} mm that is {free.radius_mm - self.r:.4f} mm, not the nominal {radius_mm} mm within "
+                f"{cfg.radius_tol_mm} mm", final)
         log.debug("cmm.sphere_measured", centre_mm=fit.centre_mm.tolist(), rms_mm=fit.rms_mm,
-                  radius_free_mm=free.radius_mm, touches=len(records), rejected=len(records) - len(used))
-        return SphereMeasurement(centre_mm=fit.centre_mm, radius_mm=r, fit=fit, free_fit=free, probes=final,
-                                 nominal_centre_mm=centre)
+                  radius_free_mm=free.radius_mm - self.r, touches=len(records), rejected=len(records) - len(used))
+        return SphereMeasurement(centre_mm=fit.centre_mm, radius_mm=radius_mm, fit=fit, free_fit=free, probes=final,
+                                 nominal_centre_mm=centre, stylus_radius_mm=self.r)
 
     # ------------------------------------------------------------------ a pose
 
@@ -269,6 +326,7 @@ class Prober:
         T0 = as_transform(alignment)
         expected = robot.home if expected_pose is None else np.asarray(expected_pose, dtype=float)
         r = robot.sphere_radius_mm
+        reach = r + self.r
         mm, deg = alignment_tolerance or (DEFAULT_ALIGNMENT_MM, DEFAULT_ALIGNMENT_DEG)
         base_belief = BodyBelief.within(T0, mm, deg)
         if pose_cov is None:
@@ -281,7 +339,7 @@ class Prober:
                                     ("platform", platform_belief, robot.platform_spheres)):
             for k, s in enumerate(points):
                 pred = belief.predict(s, _up(), floor)
-                regions.balls[f"{key}{k}"] = Ball(pred.centre_mm, r + pred.bound_mm + cfg.route_margin_mm)
+                regions.balls[f"{key}{k}"] = Ball(pred.centre_mm, reach + pred.bound_mm + cfg.route_margin_mm)
         touches0 = self.cmm.touches
         ceiling = 0.0 if registered else cfg.max_search_mm
         base, base_belief = self._measure_body("base", base_belief, robot.base_spheres, r, floor, regions, ceiling)
@@ -310,27 +368,28 @@ class Prober:
                                refined_alignment=T_cb, expected_pose=expected, extra=extra)
 
     def _park(self, robot: Robot, T_cb: np.ndarray, pose: np.ndarray, regions: Regions) -> None:
-        """Leave the probe above every place a platform sphere can reach, over the last one measured: the platform
-        moves next."""
+        """Leave the ball above every place a platform sphere can reach (by the clearance and its own radius), over
+        the last one measured: the platform moves next."""
         T = transform_from_pose(pose)
         above = T[:3, :3] @ robot.platform_spheres[-1] + T[:3, 3]
-        above[2] = park_height_mm(robot, self.cfg.clearance_mm)
+        above[2] = park_height_mm(robot, self.cfg.clearance_mm + self.r)
         self._go(T_cb[:3, :3] @ above + T_cb[:3, 3], list(regions.balls.values()))
 
     def _measure_body(self, key: str, belief: BodyBelief, points: np.ndarray, r: float, floor: float,
                       regions: Regions, ceiling_mm: float = 0.0) -> tuple[tuple[SphereMeasurement, ...], BodyBelief]:
         """Each sphere of one body in turn, predicted from the frame the spheres before it conditioned."""
         out = []
+        reach, margin = r + self.r, self.cfg.route_margin_mm
         for k, s in enumerate(points):
             name = f"{key}{k}"
             pred = dataclasses.replace(belief.predict(s, _up(), floor), ceiling_mm=ceiling_mm)
-            regions.balls[name] = Ball(pred.centre_mm, r + pred.bound_mm + self.cfg.route_margin_mm)
+            regions.balls[name] = Ball(pred.centre_mm, reach + pred.bound_mm + margin)
             m = self.measure_sphere(pred, r, regions.others(name))
-            regions.balls[name] = Ball(m.centre_mm, r + self.cfg.route_margin_mm)
+            regions.balls[name] = Ball(m.centre_mm, reach + margin)
             belief = belief.condition(s, m.centre_mm, MEASURED_SIGMA_MM)
             for j in range(k + 1, len(points)):
                 nxt = belief.predict(points[j], _up(), floor)
-                regions.balls[f"{key}{j}"] = Ball(nxt.centre_mm, r + nxt.bound_mm + self.cfg.route_margin_mm)
+                regions.balls[f"{key}{j}"] = Ball(nxt.centre_mm, reach + nxt.bound_mm + margin)
             out.append(m)
         return tuple(out), belief
 
@@ -338,18 +397,12 @@ class Prober:
 def _with(m: SphereMeasurement, *, search: SphereSearch | None, nominal: np.ndarray,
           superseded: SphereMeasurement | None = None) -> SphereMeasurement:
     """The measurement as reported: against the original prediction, with its search and first pass."""
-    return SphereMeasurement(centre_mm=m.centre_mm, radius_mm=m.radius_mm, fit=m.fit, free_fit=m.free_fit,
-                             probes=m.probes, nominal_centre_mm=nominal if superseded is None else m.nominal_centre_mm,
-                             superseded=superseded, search=search)
+    return dataclasses.replace(m, nominal_centre_mm=nominal if superseded is None else m.nominal_centre_mm,
+                               superseded=superseded, search=search)
 
 
-def _finalise(records: list[ProbeRecord], centre: np.ndarray, radius_mm: float) -> tuple[ProbeRecord, ...]:
-    """Every record with its residual against the final centre."""
-    out = []
-    for rec in records:
-        if rec.point_mm is None:
-            out.append(rec)
-            continue
-        residual = float(np.linalg.norm(rec.point_mm - centre) - radius_mm)
-        out.append(ProbeRecord(rec.target_mm, rec.ijk, rec.point_mm, rec.status, residual, rec.detail))
-    return tuple(out)
+def _finalise(records: list[ProbeRecord], centre: np.ndarray, reach_mm: float) -> tuple[ProbeRecord, ...]:
+    """Every record with its residual against the final centre (the ball centres' radius `reach_mm`, R + r)."""
+    return tuple(rec if rec.point_mm is None else
+                 dataclasses.replace(rec, residual_mm=float(np.linalg.norm(rec.point_mm - centre) - reach_mm))
+                 for rec in records)

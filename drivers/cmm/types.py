@@ -22,30 +22,108 @@ class CmmDriverError(Exception):
 
 
 class CmmConnectionError(CmmDriverError):
-    """The port cannot be opened, or the connection was lost."""
+    """The port cannot be opened, or the connection was lost (or the CMM answers neither a motion nor AbortE)."""
 
 
 class CmmTimeout(CmmDriverError):
-    """No complete response within the timeout, after the bounded retries."""
+    """No complete response within its bounded wait (a query: after its bounded re-asks)."""
+
+
+class CmmMotionTimeout(CmmTimeout):
+    """A motion (GoTo, PtMeas, Home, ChangeTool) did not complete in time: it was aborted with AbortE (6.3.1.5), never
+    sent again; the errors were cleared and the probe's position read back (``position_mm``)."""
+
+    def __init__(self, message: str, command: str, position_mm: np.ndarray | None, error_status: bool | None) -> None:
+        super().__init__(message)
+        self.command = command
+        self.position_mm = position_mm
+        self.error_status = error_status
+        """GetErrStatusE's answer after the recovery (None: not asked)."""
 
 
 class CmmProtocolError(CmmDriverError):
-    """A response that breaks the protocol (malformed line for our tag, a response with a wrong tag...)."""
+    """A response that breaks the protocol (a malformed line for our tag, an answer that is not the requested data)."""
+
+
+class ProbeLost(CmmProtocolError):
+    """A touch was made but its report was garbled: the point is lost (the probe's position was read back)."""
+
+
+class CmmToolChanged(CmmProtocolError):
+    """The CMM changed its tool on its own (an E0000 ChangeTool event, 9.5.4) during a measurement: the stylus is
+    read again before the next one."""
 
 
 class CmmError(CmmDriverError):
-    """An error reported by the CMM: ``! Error(severity, code, "method", "text")``."""
+    """An error reported by the CMM, ``! Error(severity, code, "method", "text")`` (8), of severity 2 or more.
 
-    def __init__(self, code: int, text: str, severity: int = 3, method: str = "") -> None:
+    ``errors`` holds every error of the transaction (8: a transaction can carry several); ``tag`` is the tag it came
+    with (E0000: unsolicited, 6.2.4)."""
+
+    def __init__(self, code: int, text: str, severity: int = 3, method: str = "", tag: str = "",
+                 errors: tuple[ErrorReport, ...] = ()) -> None:
         super().__init__(f"CMM error {code:04d} (severity {severity}) in {method or '?'}: {text}")
         self.code = code
         self.text = text
         self.severity = severity
         self.method = method
+        self.tag = tag
+        self.errors = errors
 
 
 class ProbeMiss(CmmError):
-    """PtMeas touched no surface within the search distance."""
+    """PtMeas touched no surface within the search (1006 Surface not found; 1003 No touch)."""
+
+
+class CmmEmergencyStop(CmmError):
+    """0500 Emergency stop, with any tag: motion stops, nothing moves until it is released and cleared."""
+
+
+class CmmCollision(CmmError):
+    """2504 Collision: the machine stopped where it struck something."""
+
+
+class CmmTransactionAborted(CmmError):
+    """0006 Transaction aborted: an AbortE or an error of severity 2 or more ended the transaction (6.2.5, 6.3.1.5)."""
+
+
+class CmmInErrorState(CmmDriverError):
+    """The CMM is in an error state (severity 2 or more, or after AbortE) not cleared yet: the driver sends nothing but
+    GetErrStatusE, GetXtdErrStatus and ClearAllErrors (6.2.5) until ``clear_errors()``; ``cause`` is the error."""
+
+    def __init__(self, message: str, cause: CmmError | None) -> None:
+        super().__init__(message)
+        self.cause = cause
+
+
+@dataclass(frozen=True)
+class ErrorReport:
+    """One ``! Error(F1, F2, F3, Text)`` as received (a warning of severity 0 or 1 is returned, not raised)."""
+
+    severity: int
+    code: int
+    method: str
+    text: str
+    tag: str = ""
+
+
+@dataclass(frozen=True)
+class Touch:
+    """One PtMeas as the CMM reported it (6.3.2.13): the stylus ball's centre at contact, and where the CMM gives
+    them, the surface direction IJK() and the effective radius ER() (6.3.2.25)."""
+
+    reported_mm: np.ndarray
+    ijk: np.ndarray | None = None
+    effective_radius_mm: float | None = None
+
+
+@dataclass(frozen=True)
+class TouchSettings:
+    """The active tool's PtMeasPar as the CMM has them (6.3.7, read back after SetProp: a server clamps)."""
+
+    approach_mm: float
+    search_mm: float
+    retract_mm: float
 
 
 class SphereMeasurementError(CmmDriverError):
@@ -68,7 +146,8 @@ class ProbeStatus(StrEnum):
 
 @dataclass(frozen=True)
 class ProbeRecord:
-    """One touch as made: target, approach direction, the returned point (None on a miss) and its fate."""
+    """One touch as made: where the stylus ball's centre was expected to touch, the approach direction, the ball
+    centre the CMM reported (PtMeas reports the ball centre, 6.3.2.13; None on a miss) and its fate."""
 
     target_mm: np.ndarray
     ijk: np.ndarray
@@ -77,6 +156,9 @@ class ProbeRecord:
     residual_mm: float | None = None
     """Radial residual against the final fit (None for a miss)."""
     detail: str = ""
+    effective_radius_mm: float | None = None
+    """ER() of the touch where the CMM reports it (6.3.2.25): ``point_mm`` is then the centre of a ball of the
+    tool's AvrRadius touching the same surface point."""
 
 
 @dataclass(frozen=True)
@@ -100,13 +182,16 @@ class SphereSearch:
 
 @dataclass(frozen=True)
 class SphereMeasurement:
-    """A measured tooling sphere: fixed-radius centre, its residuals, the free-radius check and every probe."""
+    """A measured tooling sphere: fixed-radius centre, its residuals, the free-radius check and every probe.
+
+    The points are stylus-ball centres: they lie on a sphere of radius ``radius_mm + stylus_radius_mm`` around the
+    tooling sphere's centre, the radius both fits work with."""
 
     centre_mm: np.ndarray
     radius_mm: float
-    """Nominal radius the centre was fitted with."""
+    """The tooling sphere's nominal radius."""
     fit: SphereFit
-    """Fixed-radius fit over the used points."""
+    """Fixed-radius fit (radius_mm + stylus_radius_mm) over the used ball centres."""
     free_fit: SphereFit
     """Free-radius fit over the same points (a check on the radius and on the probing)."""
     probes: tuple[ProbeRecord, ...]
@@ -117,6 +202,8 @@ class SphereMeasurement:
     """A first pass that was far from its prediction and was measured again around its fitted centre."""
     search: SphereSearch | None = None
     """How the sphere was found when it was not looked for where predicted (None: probed where predicted)."""
+    stylus_radius_mm: float = 0.0
+    """The stylus ball's radius the CMM stated (Tool.AvrRadius(), 6.3.13)."""
 
     @property
     def points_mm(self) -> np.ndarray:
@@ -134,7 +221,8 @@ class SphereMeasurement:
 
     @property
     def radius_free_mm(self) -> float:
-        return self.free_fit.radius_mm
+        """The tooling sphere's radius by the free fit: the ball centres' radius less the stylus radius."""
+        return self.free_fit.radius_mm - self.stylus_radius_mm
 
     @property
     def rejected(self) -> tuple[ProbeRecord, ...]:
@@ -185,16 +273,17 @@ class ProbingConfig(BaseModel):
     radius_tol_mm: float = Field(default=0.05, gt=0, description="max |free-fit radius - nominal radius|")
     prediction_tol_mm: float = Field(default=2.0, gt=0, description="re-measure a sphere this far from prediction")
     registration_tol_mm: float = Field(default=0.05, gt=0, description="max RMS of the sphere-layout registrations")
-    min_search_mm: float = Field(default=5.0, gt=0, description="least search distance of a touch: it starts this far "
-                                 "out from the predicted surface and searches as far beyond it")
+    min_search_mm: float = Field(default=5.0, gt=0, description="least search distance of a touch: the stylus ball "
+                                 "starts this far out from where it would touch the predicted sphere and searches as "
+                                 "far beyond it")
     search_margin_mm: float = Field(default=1.0, gt=0, description="a touch starts this far beyond where the sphere's "
                                     "surface could be")
     route_margin_mm: float = Field(default=0.5, gt=0, description="positioning moves keep this far outside the region "
                                    "a sphere could be in")
     search_fraction: float = Field(default=0.4, gt=0, le=1.0, description="a sphere whose prediction is uncertain by "
                                    "more than this fraction of its radius is searched for before it is probed")
-    max_search_mm: float = Field(default=90.0, gt=0, le=90.0, description="the widest search around a prediction: a "
-                                 "sphere not found within it stops the measurement")
+    max_search_mm: float = Field(default=90.0, gt=0, le=90.0, description="the widest search around a prediction: "
+                                 "a sphere not found within it stops the measurement")
     default_bound_mm: float = Field(default=2.0, gt=0, description="how far a sphere may be from where it is asked for "
                                     "when the caller gives no uncertainty")
     least_bound_mm: float = Field(default=0.3, gt=0, description="the least bound of a prediction from a model")

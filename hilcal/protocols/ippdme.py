@@ -3,7 +3,7 @@
 The driver (``drivers/cmm/``) and the simulated CMM (``sim_devices/cmm/``) both read these tables, but each side has
 its own parser and formatter, so the simulator cannot agree with the driver merely by sharing its code. Section
 numbers are those of the specification (``I++ DME Specification 1.4.3``); ``docs/protocols.md`` says which commands
-each side supports and where 1.4.3 and later versions differ.
+the driver uses, ``docs/cmm_simulator.md`` what the simulator supports and where 1.4.3 and later versions differ.
 
 Line grammar (6.1.4.2, abridged; 6.2: ASCII 32..126, CR LF terminated, at most 65536 characters)::
 
@@ -49,7 +49,8 @@ BASIC_NAME_PATTERN = r"[A-Za-z][A-Za-z0-9]*"
 NAME_PATTERN = rf"{BASIC_NAME_PATTERN}(?:\.{BASIC_NAME_PATTERN})*"
 NUMBER_PATTERN = r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[Ee][+-]?[0-9]{1,3})?"
 MAX_NUMBER_DIGITS = 16
-"""Number: at most 16 digits in all (the exponent's included)."""
+"""Number: "the total number of digits shall not exceed 16" (6.1.4.2), counted before the exponent as NIST's parsers
+count them (NIST's DCXpart.prg sends 16 digits and a three-digit exponent)."""
 STRING_PATTERN = r'"[ !#-~]+"'
 """String :== q Char {Char} q: at least one character, none of them a double quote."""
 OPTIONAL_SPACE = " "
@@ -169,6 +170,7 @@ class Code(IntEnum):
     INCORRECT_ARGUMENTS = 502
     ARGUMENT_OUT_OF_RANGE = 504
     ARGUMENT_NOT_RECOGNIZED = 505
+    ARGUMENT_NOT_SUPPORTED = 506
     ILLEGAL_COMMAND = 507
     BAD_CONTEXT = 508
     BAD_ARGUMENT = 509
@@ -258,6 +260,8 @@ class Method(StrEnum):
     TILT_PART = "TiltPart"
     TILT_CENTER_PART = "TiltCenterPart"
     LOCK_AXIS = "LockAxis"
+    LOCK_POSITION = "LockPosition"
+    """13.5, new in 1.4.3."""
 
 
 EVENT_METHODS = frozenset(m for m in Method if m.endswith("E"))

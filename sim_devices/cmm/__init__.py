@@ -1,5 +1,7 @@
-"""The simulated coordinate measuring machine: its line protocol session (``session``, ``commands``), fault
-injection (``faults``, ``config``) and the server on a pseudo-terminal or TCP (``server``).
+"""The simulated coordinate measuring machine, speaking I++ DME 1.4.3: its command reader (``wire``, ``methods``),
+sessions and transactions (``session``, ``handlers``, ``responses``), machine and stylus-ball physics (``machine``,
+``physics``, ``tools``), fault injection (``faults``, ``config``) and the server on a pseudo-terminal or TCP
+(``server``). See docs/cmm_simulator.md.
 
 May import ``hilcal.protocols``, ``hilcal.robot``, ``sim_devices.rig``, ``sim_devices.config_base`` and itself;
 never ``drivers`` or the controller.

@@ -1,8 +1,10 @@
-"""Simulated CMM speaking the I++-DME-like line protocol of ``hilcal.protocols.cmm`` on a pty and/or TCP.
+"""Simulated CMM speaking I++ DME 1.4.3 (``hilcal.protocols.ippdme``) on a pty and/or TCP (127.0.0.1).
 
-``start_cmm_server`` serves one ``CmmMachine`` (``cmm_session.py``) to every link, one ``CmmSession`` and thread
-per link. The server has its own command parser and formatter (it shares only the declarative protocol tables
-with the driver) and never imports ``drivers``. Faults (``cmm_faults.py``) are settable at start and at run time.
+``start_cmm_server`` serves one ``CmmMachine`` (``machine.py``) to every link, one ``CmmSession`` (``session.py``)
+with its reader and worker threads per link (a real server listens on port 1294, 6.1; tests ask for an ephemeral
+port). The server has its own command reader and formatter (it shares only the declarative protocol tables with the
+driver) and never imports ``drivers``. Faults (``faults.py``) are settable at start and at run time; an emergency stop
+can be pressed and released on the handle (``emergency_stop``, ``release_emergency_stop``; 6.2.4, 9.5).
 """
 
 from __future__ import annotations
@@ -22,11 +24,12 @@ from typing import Any
 
 import structlog
 
-from hilcal.protocols.cmm import MAX_LINE_BYTES, TERMINATOR
+from hilcal.protocols.ippdme import MAX_LINE_CHARS, Code
 from hilcal.robot import Robot
 from sim_devices.cmm.config import CmmServerConfig
 from sim_devices.cmm.faults import FaultInjector
-from sim_devices.cmm.session import CmmMachine, CmmSession
+from sim_devices.cmm.machine import CmmMachine
+from sim_devices.cmm.session import CmmSession
 from sim_devices.rig.rig import SimulatedRig
 
 log = structlog.get_logger(__name__)
@@ -83,9 +86,27 @@ class CmmServerHandle:
 
     @property
     def collisions(self) -> int:
-        """Crashes of the probe so far (GoTo or PtMeas approaches into a sphere, illegal touches, platform spheres that
-        struck the standing probe), each logged as ``cmm_sim.collision``."""
+        """Crashes of the stylus ball so far (positioning moves into a sphere, illegal touches, platform spheres that
+        struck the parked ball), each logged as ``cmm_sim.collision``."""
         return self._machine.collisions
+
+    @property
+    def machine(self) -> CmmMachine:
+        """The simulated machine (its position, tools and state), for tests and the launcher."""
+        return self._machine
+
+    def emergency_stop(self) -> None:
+        """Press the emergency stop: the motion stops, every session gets ``E0000 ! Error(3, 0500, ...)`` and motion
+        is refused (0500) until it is released and the errors are cleared."""
+        log.warning("cmm_sim.emergency_stop")
+        self._machine.emergency = True
+        self._machine.request_stop("emergency")
+        self._machine.broadcast(Code.EMERGENCY_STOP, "HealthCheck")
+
+    def release_emergency_stop(self) -> None:
+        """Release the emergency stop; the sessions stay in their error state until ClearAllErrors."""
+        log.info("cmm_sim.emergency_stop_released")
+        self._machine.emergency = False
 
     @property
     def machine_time_s(self) -> float:
@@ -160,7 +181,7 @@ class CmmServerHandle:
         def send(data: bytes) -> None:
             self._write_all(link.fd, data)
 
-        session = CmmSession(self._machine, self.faults, send, self._stop.wait)
+        session = CmmSession(self._machine, self.faults, send, self._stop)
         buf = bytearray()
         discarding = False
         try:
@@ -185,13 +206,13 @@ class CmmServerHandle:
                 while True:
                     end = buf.find(b"\n")
                     if end < 0:
-                        if len(buf) > MAX_LINE_BYTES + len(TERMINATOR):
-                            if not discarding:
-                                session.handle_line(bytes(buf))
+                        if len(buf) > MAX_LINE_CHARS + 1:
+                            if not discarding:  # answered once (0008), the rest up to its LF dropped
+                                session.handle_line(bytes(buf[: MAX_LINE_CHARS + 1]) + b"\r")
                             discarding = True
                             buf.clear()
                         break
-                    line = bytes(buf[:end]).removesuffix(b"\r")
+                    line = bytes(buf[:end])
                     del buf[: end + 1]
                     if discarding:
                         discarding = False
@@ -203,6 +224,7 @@ class CmmServerHandle:
         except Exception:
             log.exception("cmm_sim.link_failed", link=link.name)
         finally:
+            session.close()
             if link.owned and link.sock is not None:
                 with contextlib.suppress(OSError):
                     link.sock.close()

@@ -1,486 +1,351 @@
-"""The simulated CMM's machine and protocol session: touch physics, collisions, homing, error state, responses.
+"""One link's I++ DME session on the simulated CMM: transactions, the two queues, the error state, daemons, events.
 
-Physics: the six tooling spheres of the SimulatedRig (platform spheres moving with ``rig.true_pose()``, base
-spheres fixed) expressed in the CMM frame with ``rig.to_cmm``. ``PtMeas(X,Y,Z,IJK)`` moves the probe from
-target + s*IJK along -IJK for up to 2*s (s = search distance) and returns the first surface touched plus
-Gaussian noise; no surface on that path is error 1006 "Surface not found". Every positioning move is a straight
-line from where the probe is (its tip a point): a ``GoTo`` or a PtMeas approach that enters a sphere crashes
-(error 2504 Collision; a PtMeas start point inside a sphere is 1001 Illegal touch), and the probe stops where it
-met the surface. The machine also notices when the platform has moved (at every command, and whenever it asks for
-the sphere centres): a platform sphere whose way from its old to its new centre (the poses between interpolated:
-translation straight, orientation by slerp) passes through the homed probe has struck it (kind "struck"; with
-``on_collision = "stop"`` it latches error 2504, so the next motion command is refused). Each crash is counted
-(``CmmMachine.collisions``) and logged as ``cmm_sim.collision``. Durations (travel, the probing stroke at its own
-speed, a fixed overhead per touch, homing) are real-time figures multiplied by ``time_scale`` (0 = instant).
-``CmmSession`` is one connection's protocol state, transport-free: it answers command lines through a ``send``
-callable.
+Transactions (6.2.3): each command is acknowledged (``&``) as it is read; commands with a command tag then wait in
+the normal queue and are answered in order by the session's worker (``#`` and ``!`` lines, ``%`` always last, also
+after ``!``), so the reader keeps reading while a motion takes machine time. Commands with an event tag (AbortE,
+GetErrStatusE, GetPropE, OnMoveReportE; 6.2.1) are answered at once by the reader; lines with an event tag may come at
+any time (6.2.3). A line whose tag cannot be read is answered ``E0000 ! Error(2, 0001, ...)`` alone (6.2.1).
+
+Errors (6.2.5, 8): an error of severity 2 or more aborts the pending transactions (``0006`` each, then ``%``) and
+puts the session in its error state: every method but GetErrStatusE, GetXtdErrStatus, ClearAllErrors (and AbortE,
+which must always be able to stop the machine) is then answered 0511 and 0514 as 6.3.1.7's example shows, until
+ClearAllErrors. AbortE (6.3.1.5) stops the motion, answers "Transaction aborted" for the executing and the pending
+non-event commands, sends its own ``%`` after them, and leaves only ClearAllErrors to the client (else 0511, 0514).
 """
 
 from __future__ import annotations
 
 import threading
+from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import structlog
-from scipy.spatial.transform import Rotation, Slerp
 
-from hilcal.protocols.cmm import (
-    COORDINATE_DECIMALS,
-    DEFAULT_SEARCH_DISTANCE_MM,
-    ENCODING,
-    ERRORS,
-    LATCHING_ERRORS,
-    MACHINE_VOLUME_LIMIT_MM,
-    MAX_SEARCH_DISTANCE_MM,
-    MOTION_COMMANDS,
-    PRINTABLE_MAX,
-    PRINTABLE_MIN,
-    SEARCH_PROPERTY,
-    SESSION_FREE_COMMANDS,
-    TERMINATOR,
-    Command,
-    ErrorCode,
+from hilcal.protocols.ippdme import (
+    SESSIONLESS_METHODS,
+    WHILE_IN_ERROR_METHODS,
+    Code,
     Marker,
+    Method,
 )
-from hilcal.robot import Robot
-from sim_devices.cmm.commands import Call, CommandRejected, axes_by_name, parse_command_line
-from sim_devices.cmm.config import CmmServerConfig
+from sim_devices.cmm import methods
 from sim_devices.cmm.faults import FaultInjector, FaultPlan
-from sim_devices.rig.rig import SimulatedRig
+from sim_devices.cmm.handlers import Handlers, Reply, SessionState, measured_item
+from sim_devices.cmm.machine import CmmMachine, MotionStopped
+from sim_devices.cmm.methods import ArgumentError
+from sim_devices.cmm.responses import SERVER_EVENT_TAG, line
+from sim_devices.cmm.wire import Command, LineError, read_command
 
 log = structlog.get_logger(__name__)
 
-PENETRATION_TOL_MM = 1e-6
-"""A move enters a sphere when it comes closer to its centre than the radius less this (a probe stopped on a
-surface may leave it, or move along it)."""
-WAY_STEP_DEG = 0.5
-"""The platform's way between two looks is sampled every this much turn (a sphere 1 m out then strays at most 10 µm
-from the straight steps between the samples)."""
-MAX_WAY_STEPS = 512
+MAX_PENDING = 100
+"""Transactions waiting in the normal queue beyond this delay the next acknowledgement (6.2.3)."""
+ABORT_WAIT_S = 10.0
+"""AbortE waits at most this long for the executing motion to stop (real time)."""
+MOVING = frozenset({Method.HOME, Method.GO_TO, Method.PT_MEAS, Method.CHANGE_TOOL})
+REPORT_INTERVAL_S = 0.1
+"""6.3.2.7: at most 10 move reports per second (machine time)."""
+TIME_TOL_S = 1e-9
+"""Sums of machine-time samples compared with this slack."""
 
 
-class MotionAborted(Exception):
-    """A motion that failed after its acknowledgement, after ``duration_s`` of machine time."""
+@dataclass
+class Job:
+    """A transaction of the normal queue: its command (or the error its line earned) and its faults."""
 
-    def __init__(self, code: ErrorCode, detail: str = "", duration_s: float = 0.0) -> None:
-        super().__init__(code.name)
-        self.code = code
-        self.detail = detail
-        self.duration_s = duration_s
-
-
-def sphere_name(index: int) -> str:
-    """How the log names sphere ``index`` of ``CmmMachine.sphere_centres_mm`` (platform spheres first)."""
-    return f"platform sphere {index + 1}" if index < 3 else f"base sphere {index - 2}"
-
-
-class CmmMachine:
-    """Axes, homing, error state and the touch physics; shared by all connections."""
-
-    def __init__(self, robot: Robot, rig: SimulatedRig, config: CmmServerConfig) -> None:
-        self.robot = robot
-        self.rig = rig
-        self.config = config
-        self.lock = threading.Lock()
-        self.homed = False
-        self.position_mm = np.zeros(3)
-        self.latched: ErrorCode | None = None
-        self.latched_detail = ""
-        """What latched the error state when no command did (a platform that struck the probe), for the refusals."""
-        self.collisions = 0
-        """Crashes so far: GoTo or PtMeas approaches into a sphere, illegal touches and platform spheres that struck the
-        probe (each logged)."""
-        self.machine_time_s = 0.0
-        """Every command's duration so far, before ``time_scale``."""
-        self._rng = np.random.default_rng([config.seed, 0xC33])
-        self._centres: tuple[bytes, np.ndarray, np.ndarray] | None = None
-        """The platform pose the machine last saw (as bytes), the sphere centres for it, and the pose."""
-
-    def sphere_centres_mm(self) -> np.ndarray:
-        """(6, 3) true sphere centres in the CMM frame: platform spheres first, then base spheres.
-
-        Computed again only when the platform's pose changed (every command and touch asks; the platform rarely
-        moves). Then, with the probe homed, whether a platform sphere struck it on its way (``_check_strikes``).
-        """
-        pose = self.rig.true_pose()
-        key = pose.tobytes()
-        if self._centres is None or self._centres[0] != key:
-            rot = Rotation.from_euler("ZYX", pose[[5, 4, 3]], degrees=True)
-            platform_base = rot.apply(self.robot.platform_spheres) + pose[:3]
-            previous = self._centres
-            self._centres = (key, self.rig.to_cmm(np.vstack([platform_base, self.robot.base_spheres])), pose)
-            if previous is not None and self.homed:
-                self._check_strikes(self._platform_way(previous[2], pose))
-        return self._centres[1].copy()
-
-    def _platform_way(self, pose0: np.ndarray, pose1: np.ndarray) -> np.ndarray:
-        """(n + 1, 3, 3) platform sphere centres (CMM frame) on the platform's way from pose0 to pose1: the poses
-        between interpolated (translation straight, orientation by slerp), a sample every ``WAY_STEP_DEG`` of turn.
-
-        The machine sees only the poses at its commands; between them the platform may have moved a long way. This
-        way is exact for a move in a straight line at a steady turn, and near any move between two nearby poses.
-        """
-        rots = Rotation.from_euler("ZYX", np.vstack([pose0, pose1])[:, [5, 4, 3]], degrees=True)
-        turn_deg = float(np.degrees((rots[0].inv() * rots[1]).magnitude()))
-        n = int(min(MAX_WAY_STEPS, max(1, np.ceil(turn_deg / WAY_STEP_DEG))))
-        t = np.linspace(0.0, 1.0, n + 1)
-        R = Slerp([0.0, 1.0], rots)(t).as_matrix()
-        shift = pose0[:3] + t[:, None] * (pose1[:3] - pose0[:3])
-        points = np.einsum("nij,kj->nki", R, self.robot.platform_spheres) + shift[:, None, :]
-        return self.rig.to_cmm(points.reshape(-1, 3)).reshape(points.shape)
-
-    def _check_strikes(self, way: np.ndarray) -> None:
-        """The platform carried its spheres along ``way`` (``_platform_way``) since the machine last looked.
-
-        A sphere that came closer to the probe than its radius on one of the straight steps between the samples
-        struck the probe: ``_strike``. A probe already inside a sphere's old place is not struck again.
-        """
-        r = self.robot.sphere_radius_mm
-        for index in range(way.shape[1]):
-            a, b = way[:-1, index], way[1:, index]
-            p = self.position_mm
-            if np.linalg.norm(p - a[0]) < r - PENETRATION_TOL_MM:
-                continue
-            d = b - a
-            t = np.clip(np.sum((p - a) * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-300), 0.0, 1.0)
-            if np.min(np.linalg.norm(a + t[:, None] * d - p, axis=1)) < r - PENETRATION_TOL_MM:
-                self._strike(index, a[0], b[-1])
-
-    def _strike(self, index: int, c0: np.ndarray, c1: np.ndarray) -> None:
-        """Platform sphere ``index``, moving from centre c0 to c1, struck the probe: count and log it, and with
-        ``on_collision = "stop"`` latch 2504. A probe the sphere now covers is left on its surface (pushed aside)."""
-        p = self.position_mm.copy()
-        stop = self.config.on_collision == "stop"
-        self.collisions += 1
-        log.warning("cmm_sim.collision", kind="struck", command=None, code=int(ErrorCode.COLLISION), stopped=stop,
-                    sphere=index, sphere_name=sphere_name(index), from_mm=np.round(c0, 4).tolist(),
-                    to_mm=np.round(c1, 4).tolist(), contact_mm=np.round(p, 4).tolist(), collisions=self.collisions)
-        r = self.robot.sphere_radius_mm
-        gap = p - c1
-        dist = float(np.linalg.norm(gap))
-        if dist < r:
-            away = gap / dist if dist > 0 else (c0 - c1) / np.linalg.norm(c0 - c1)
-            self.position_mm = c1 + r * away
-        if stop:
-            where = ", ".join(f"{v:.3f}" for v in p)
-            self.latch(ErrorCode.COLLISION, f"the platform moved {sphere_name(index)} into the probe at ({where})")
-
-    def latch(self, code: ErrorCode | None, detail: str = "") -> None:
-        """Enter the error state with ``code`` (None: leave it); ``detail`` goes into the refusals that follow."""
-        self.latched, self.latched_detail = code, detail if code is not None else ""
-
-    def refuse_if_struck(self) -> None:
-        """Look at the platform now; MotionAborted if it struck the probe since this command was accepted."""
-        self.sphere_centres_mm()
-        if self.latched is not None:
-            raise MotionAborted(self.latched, self.latched_detail)
-
-    def _travel_s(self, to_mm: np.ndarray) -> float:
-        return float(np.linalg.norm(to_mm - self.position_mm)) / self.config.travel_speed_mm_s
-
-    def first_contact(self, start: np.ndarray, end: np.ndarray) -> tuple[int, np.ndarray] | None:
-        """The first sphere the straight move from start to end enters (index, the point where the probe meets its
-        surface), or None when the move stays clear. A start already inside a sphere meets it at once."""
-        centres = self.sphere_centres_mm()
-        r = self.robot.sphere_radius_mm
-        d = end - start
-        m = start - centres
-        a = float(d @ d)
-        if a == 0.0:
-            closest = np.linalg.norm(m, axis=1)
-            entry = np.zeros(len(centres))
-        else:
-            b = m @ d
-            closest = np.linalg.norm(m + np.clip(-b / a, 0.0, 1.0)[:, None] * d, axis=1)
-            c = np.sum(m * m, axis=1) - r * r
-            with np.errstate(invalid="ignore"):
-                entry = np.maximum((-b - np.sqrt(np.maximum(b * b - a * c, 0.0))) / a, 0.0)
-        hit = closest < r - PENETRATION_TOL_MM
-        if not hit.any():
-            return None
-        index = int(np.argmin(np.where(hit, entry, np.inf)))
-        return index, start + min(float(entry[index]), 1.0) * d
-
-    def _collision(self, code: ErrorCode, kind: str, command: str, end: np.ndarray, contact: tuple[int, np.ndarray],
-                   stop: bool, extra_s: float = 0.0) -> MotionAborted:
-        """Count and log a crash; with ``stop`` the probe stops where it met the sphere. The error to raise."""
-        index, point = contact
-        start = self.position_mm.copy()
-        duration = self._travel_s(point) + extra_s
-        if stop:
-            self.position_mm = point
-        self.collisions += 1
-        log.warning("cmm_sim.collision", kind=kind, command=command, code=int(code), stopped=stop, sphere=index,
-                    sphere_name=sphere_name(index), from_mm=np.round(start, 4).tolist(),
-                    to_mm=np.round(end, 4).tolist(), contact_mm=np.round(point, 4).tolist(), collisions=self.collisions)
-        what = {"goto": "GoTo path enters", "approach": "PtMeas approach enters",
-                "illegal_touch": "PtMeas start point inside a sphere; the approach meets"}[kind]
-        depth = self.robot.sphere_radius_mm - np.linalg.norm(start - self.sphere_centres_mm()[index])
-        where = "with the probe already inside it" if depth > PENETRATION_TOL_MM else \
-            f"at ({', '.join(f'{v:.3f}' for v in point)})"
-        return MotionAborted(code, f"{what} {sphere_name(index)} {where}", duration)
-
-    def _inside(self, point: np.ndarray) -> bool:
-        r = self.robot.sphere_radius_mm
-        return bool(np.any(np.linalg.norm(point - self.sphere_centres_mm(), axis=1) < r - PENETRATION_TOL_MM))
-
-    def home(self) -> float:
-        self.homed = True
-        self.position_mm = np.zeros(3)
-        return self.config.home_time_s
-
-    def goto(self, target: np.ndarray) -> float:
-        """Move to target; a path into a sphere is a collision (with ``on_collision = "count"`` only a target
-        inside one stops the machine, a path through one is counted and logged)."""
-        self.refuse_if_struck()
-        contact = self.first_contact(self.position_mm, target)
-        if contact is not None:
-            stop = self.config.on_collision == "stop" or self._inside(target)
-            crash = self._collision(ErrorCode.COLLISION, "goto", "GoTo", target, contact, stop)
-            if stop:
-                raise crash
-        duration = self._travel_s(target)
-        self.position_mm = target
-        return duration
-
-    def touch(self, target: np.ndarray, ijk: np.ndarray, search_mm: float, plan: FaultPlan) -> tuple[np.ndarray, float]:
-        """The touched point (noisy) and the duration; MotionAborted on a miss, a start inside a sphere or an
-        approach through one (counted and passed through with ``on_collision = "count"``).
-
-        Duration: the positioning travel to the start, the probed distance (to the touch, or the whole stroke on a
-        miss) at ``probing_speed_mm_s`` and ``probe_time_s``. The probe ends back at the start point.
-        """
-        norm = float(np.linalg.norm(ijk))
-        if norm == 0:
-            raise MotionAborted(ErrorCode.VECTOR_HAS_NO_NORM)
-        self.refuse_if_struck()
-        n = ijk / norm
-        start = target + search_mm * n
-        contact = self.first_contact(self.position_mm, start)
-        if self._inside(start):
-            assert contact is not None
-            raise self._collision(ErrorCode.ILLEGAL_TOUCH, "illegal_touch", "PtMeas", start, contact, True,
-                                  self.config.probe_time_s)
-        if contact is not None:
-            crash = self._collision(ErrorCode.COLLISION, "approach", "PtMeas", start, contact,
-                                    self.config.on_collision == "stop", self.config.probe_time_s)
-            if self.config.on_collision == "stop":
-                raise crash
-        centres = self.sphere_centres_mm()
-        r = self.robot.sphere_radius_mm
-        m = start - centres
-        travel_s = self._travel_s(start) + self.config.probe_time_s
-        self.position_mm = start
-        b = m @ -n
-        c = np.sum(m * m, axis=1) - r * r
-        disc = b * b - c
-        with np.errstate(invalid="ignore"):
-            s = np.where(disc >= 0, -b - np.sqrt(np.maximum(disc, 0.0)), np.inf)
-        s = np.where((s >= 0) & (s <= 2.0 * search_mm), s, np.inf)
-        if plan.miss or not np.isfinite(s.min()):
-            raise MotionAborted(ErrorCode.SURFACE_NOT_FOUND, "injected miss" if plan.miss else "",
-                                travel_s + 2.0 * search_mm / self.config.probing_speed_mm_s)
-        point = start - s.min() * n + self._rng.normal(0.0, self.config.noise_sigma_mm, 3)
-        if plan.outlier:
-            point = point + self.config.outlier_mm * n
-        return point, travel_s + float(s.min()) / self.config.probing_speed_mm_s
-
-
-def _fmt(value: float) -> str:
-    return f"{value:.{COORDINATE_DECIMALS}f}"
-
-
-def _error_body(code: ErrorCode, method: str, detail: str) -> str:
-    spec = ERRORS[code]
-    text = spec.text + (f": {detail}" if detail else "")
-    safe = "".join(ch if PRINTABLE_MIN <= ord(ch) <= PRINTABLE_MAX and ch != '"' else "'" for ch in text)
-    safe_method = "".join(ch for ch in method if ch.isalnum() or ch == ".")
-    return f'{Marker.ERROR} Error({int(spec.severity)}, {int(code):04d}, "{safe_method}", "{safe}")'
+    tag: str
+    method: str
+    command: Command | None
+    error: LineError | None
+    plan: FaultPlan
+    aborted: bool = False
 
 
 class CmmSession:
-    """One connection's protocol state; turns command lines into response bytes through ``send``."""
+    """One connection's protocol state; reads command lines, answers through ``send``."""
 
-    def __init__(
-        self,
-        machine: CmmMachine,
-        faults: FaultInjector,
-        send: Callable[[bytes], None],
-        wait: Callable[[float], bool],
-    ) -> None:
+    def __init__(self, machine: CmmMachine, faults: FaultInjector, send: Callable[[bytes], None],
+                 stop: threading.Event) -> None:
         self.machine = machine
         self.faults = faults
-        self.send = send
-        self.wait = wait  # sleeps for a duration; True if the server is stopping
-        self.in_session = False
-        self.search_mm = DEFAULT_SEARCH_DISTANCE_MM
+        self._send = send
+        self._stop = stop
+        self._closed = threading.Event()
+        self._out = threading.Lock()
+        self._cv = threading.Condition()
+        self._state_lock = threading.RLock()
+        """Held while a handler reads or changes the session's state (the reader and the worker both answer)."""
+        self._queue: deque[Job] = deque()
+        self._current: Job | None = None
+        self._abort_asked = False
+        self.state = SessionState()
+        self.handlers = Handlers(machine, self.state)
+        machine.move_listeners.append(self._on_move)
+        machine.event_listeners.append(self._on_machine_event)
+        self._worker = threading.Thread(target=self._work, name="cmm-sim-session", daemon=True)
+        self._worker.start()
+
+    # ------------------------------------------------------------------ output
+
+    def _write(self, data: bytes) -> None:
+        with self._out:
+            self._send(data)
+
+    def _write_event(self, data: bytes) -> None:
+        """A line another thread raises (a move report, an unsolicited error): a link that just went away drops it
+        instead of failing the motion that raised it."""
+        try:
+            self._write(data)
+        except OSError as err:
+            log.info("cmm_sim.event_dropped", error=str(err))
+
+    def _finish(self, tag: str, body: list[bytes], plan: FaultPlan, ack: bool = False) -> None:
+        """A transaction's lines after (or, with ``ack``, with) its acknowledgement, with the planned faults."""
+        lines = [*body, line(tag, Marker.DONE)]
+        if plan.garbage:
+            lines[-1:-1] = [self.faults.garbage_line() for _ in range(self.machine.config.garbage_lines)]
+        head = line(tag, Marker.ACK) if ack else b""
+        if plan.partial:
+            log.info("cmm_sim.fault_partial", tag=tag, sent=lines[0][: len(lines[0]) // 2])
+            self._write(head + lines[0][: len(lines[0]) // 2])
+            return
+        self._write(head + b"".join(lines))
+
+    # ------------------------------------------------------------------ reading (the link's thread)
 
     def handle_line(self, raw: bytes) -> None:
-        """Answer one command line (terminator removed)."""
+        """Answer one received line (its LF removed)."""
         try:
-            cmd = parse_command_line(raw)
-        except CommandRejected as rej:
-            log.info("cmm_sim.rejected", code=int(rej.code), detail=rej.detail, raw=raw[:200])
-            self._emit(rej.tag, [], _error_body(rej.code, rej.method, rej.detail), FaultPlan())
+            cmd = read_command(raw)
+        except LineError as err:
+            self._refused_line(err, raw)
             return
-        try:
-            action = self._check(cmd.call)
-        except CommandRejected as rej:
-            log.info("cmm_sim.rejected", tag=cmd.tag, code=int(rej.code), detail=rej.detail)
-            self._emit(cmd.tag, [], _error_body(rej.code, cmd.call.name, rej.detail), FaultPlan())
-            return
-        plan = self.faults.draw(cmd.call.name)
+        plan = self.faults.draw(cmd.method)
         if plan.silence:
-            log.info("cmm_sim.fault_silence", tag=cmd.tag, command=cmd.call.name)
+            log.info("cmm_sim.fault_silence", tag=cmd.tag, command=cmd.method)
             return
-        ack = f"{cmd.tag} {Marker.ACK}".encode(ENCODING) + TERMINATOR
-        data: list[str] = []
-        try:
-            with self.machine.lock:
-                duration, data = action(plan)
-        except MotionAborted as abort:
-            with self.machine.lock:
-                if abort.code in LATCHING_ERRORS and self.machine.latched is None:  # else struck meanwhile
-                    self.machine.latch(abort.code)
-            final, duration = _error_body(abort.code, cmd.call.name, abort.detail), abort.duration_s
+        if cmd.is_event:
+            self._event(cmd, plan)
         else:
-            final = str(Marker.DONE)
-        with self.machine.lock:
-            self.machine.machine_time_s += duration
-        delay_s = duration * self.machine.config.time_scale
-        if delay_s > 0:
-            self.send(ack)
-            ack = b""
-            if self.wait(delay_s):
-                return
-        self._emit(cmd.tag, data, final, plan, ack)
+            self._enqueue(Job(cmd.tag, cmd.method, cmd, None, plan))
 
-    def _emit(self, tag: str, data: list[str], final: str, plan: FaultPlan, lead: bytes = b"") -> None:
-        """Data lines then the final line, with the planned garbage and cut applied, in one write after `lead`.
-
-        With no machine time to wait (time_scale 0 or an instant command) `lead` is the acknowledgement: a CMM
-        that finishes at once sends all its lines together.
-        """
-        lines = [f"{tag} {Marker.DATA} {d}" for d in data] + [f"{tag} {final}"]
-        if plan.partial:
-            cut = lines[0].encode(ENCODING)
-            log.info("cmm_sim.fault_partial", tag=tag, sent=cut[: len(cut) // 2])
-            self.send(lead + cut[: len(cut) // 2])
+    def _refused_line(self, err: LineError, raw: bytes) -> None:
+        log.info("cmm_sim.rejected", code=int(err.code), tag=err.tag, detail=err.detail, raw=raw[:200])
+        plan = self.faults.draw(err.method)
+        if plan.silence:
             return
-        out = [lead]
-        for i, line in enumerate(lines):
-            if plan.garbage and i == len(lines) - 1:
-                out += [self.faults.garbage_line() for _ in range(self.machine.config.garbage_lines)]
-            out.append(line.encode(ENCODING) + TERMINATOR)
-        self.send(b"".join(out))
+        if err.tag is None:
+            reply = Reply(SERVER_EVENT_TAG, err.method or "ReadTag")
+            reply.error(err.code)
+            self._serious(reply)
+            self._write(reply.lines[0])
+        elif err.tag.startswith("E"):
+            reply = Reply(err.tag, err.method)
+            reply.error(err.code)
+            self._serious(reply)
+            self._finish(err.tag, reply.lines, plan, ack=True)
+        else:
+            self._enqueue(Job(err.tag, err.method, None, err, plan))
 
-    def _check(self, call: Call) -> Callable[[FaultPlan], tuple[float, list[str]]]:
-        """Validate a command in the current state; the action to run after the acknowledgement."""
-        try:
-            name = Command(call.name)
-        except ValueError:
-            raise CommandRejected("", ErrorCode.UNSUPPORTED_COMMAND, call.name[:40]) from None
-        if not self.in_session and name not in SESSION_FREE_COMMANDS:
-            raise CommandRejected("", ErrorCode.BAD_CONTEXT, "no session (StartSession first)")
-        m = self.machine
-        with m.lock:
-            m.sphere_centres_mm()  # the platform may have moved since the last command (and struck the probe)
-        try:
-            if name in (Command.START_SESSION, Command.END_SESSION, Command.HOME, Command.CLEAR_ALL_ERRORS):
-                if call.args:
-                    raise ValueError(f"{name} takes no arguments")
-            if name in MOTION_COMMANDS:
-                with m.lock:
-                    latched, detail, homed = m.latched, m.latched_detail, m.homed
-                if latched is not None:
-                    raise CommandRejected("", ErrorCode.TRANSACTION_ABORTED,
-                                          f"after error {int(latched):04d}" + (f": {detail}" if detail else ""))
-                if name is not Command.HOME and not homed:
-                    raise CommandRejected("", ErrorCode.BAD_CONTEXT, "machine not homed (Home first)")
-            match name:
-                case Command.START_SESSION:
-                    return self._start_session
-                case Command.END_SESSION:
-                    return self._end_session
-                case Command.HOME:
-                    return lambda _plan: (m.home(), [])
-                case Command.CLEAR_ALL_ERRORS:
-                    return self._clear
-                case Command.GET_ERROR_INFO:
-                    return self._error_info(call)
-                case Command.SET_PROP:
-                    return self._set_prop(call)
-                case Command.GO_TO:
-                    axes = axes_by_name(call, ("X", "Y", "Z"), ())
-                    if not axes:
-                        raise ValueError("GoTo needs at least one of X, Y, Z")
-                    target = self._target(axes)
-                    return lambda _plan: (m.goto(target), [])
-                case Command.PT_MEAS:
-                    axes = axes_by_name(call, ("X", "Y", "Z", "IJK"), ("X", "Y", "Z", "IJK"))
-                    target = self._target(axes)
-                    ijk = np.array(axes["IJK"])
-                    search = self.search_mm
+    def _enqueue(self, job: Job) -> None:
+        with self._cv:
+            self._cv.wait_for(lambda: len(self._queue) < MAX_PENDING or self._stopping(), timeout=None)
+            self._write(line(job.tag, Marker.ACK))
+            self._queue.append(job)
+            self._cv.notify_all()
 
-                    def ptmeas(plan: FaultPlan) -> tuple[float, list[str]]:
-                        point, duration = m.touch(target, ijk, search, plan)
-                        return duration, [f"X({_fmt(point[0])}), Y({_fmt(point[1])}), Z({_fmt(point[2])})"]
+    def _stopping(self) -> bool:
+        return self._stop.is_set() or self._closed.is_set()
 
-                    return ptmeas
-        except ValueError as err:
-            raise CommandRejected("", ErrorCode.INCORRECT_ARGUMENTS, str(err)[:80]) from None
-        raise CommandRejected("", ErrorCode.UNSUPPORTED_COMMAND, call.name)
+    def _event(self, cmd: Command, plan: FaultPlan) -> None:
+        """An event-tag command, answered at once (the fast queue, 4.1)."""
+        if cmd.method == Method.ABORT_E and self.state.in_session and not self.state.aborted and not cmd.args:
+            self._abort(cmd, plan)
+            return
+        reply = Reply(cmd.tag, cmd.method)
+        self._answer(cmd, reply)
+        self._serious(reply)
+        self._finish(cmd.tag, reply.lines, plan, ack=True)
 
-    def _target(self, axes: dict[str, tuple[float, ...]]) -> np.ndarray:
+    def _abort(self, cmd: Command, plan: FaultPlan) -> None:
+        """6.3.1.5: stop the motion; 0006 for the executing and the pending commands; AbortE's ``%`` after them."""
+        self._write(line(cmd.tag, Marker.ACK))
+        with self._cv:
+            for job in self._queue:
+                job.aborted = True
+            self.state.aborted = True
+            with self.machine.stop_lock:
+                self._abort_asked = True
+            if self._current is not None:
+                self.machine.request_stop("abort")
+            self._cv.wait_for(lambda: (not self._queue and self._current is None) or self._stopping(),
+                              timeout=ABORT_WAIT_S)
+            with self.machine.stop_lock:
+                self._abort_asked = False
+        log.info("cmm_sim.aborted", tag=cmd.tag)
+        self._finish(cmd.tag, [], plan)
+
+    # ------------------------------------------------------------------ the error state
+
+    def _serious(self, reply: Reply) -> None:
+        """After errors of severity 2 or more: the pending transactions are aborted, the session in its error state."""
+        if not reply.aborts_pending:
+            return
+        with self._cv:
+            self.state.errors.extend(e for e in reply.serious if e not in self.state.errors)
+            for job in self._queue:
+                job.aborted = True
+
+    def _refusal(self, method: str) -> bool:
+        """Whether the session's error state (or AbortE) refuses this method. EndSession and StartSession always pass:
+        "sending an EndSession() followed by a StartSession will start a new session in any case" (6.3.1)."""
+        if method in SESSIONLESS_METHODS:
+            return False
+        if self.state.aborted:
+            return method != Method.CLEAR_ALL_ERRORS
+        return bool(self.state.errors) and method not in (*WHILE_IN_ERROR_METHODS, Method.ABORT_E)
+
+    def _answer(self, cmd: Command, reply: Reply) -> None:
+        """Answer a method that does not move the machine, its state checks first."""
+        self.machine.look()  # the platform may have struck the ball since the last command
+        with self._state_lock:
+            if not self.state.in_session and cmd.method not in SESSIONLESS_METHODS:
+                reply.error(Code.ILLEGAL_COMMAND)
+            elif self._refusal(cmd.method):
+                reply.refuse()
+            elif cmd.method not in methods.SUPPORTED:
+                reply.error(Code.UNSUPPORTED_COMMAND)
+            else:
+                try:
+                    self.handlers.call(cmd, reply)
+                except ArgumentError as err:
+                    log.info("cmm_sim.rejected", tag=cmd.tag, code=int(err.code), detail=err.detail)
+                    reply.error(err.code)
+
+    # ------------------------------------------------------------------ the normal queue (the worker's thread)
+
+    def _work(self) -> None:
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: self._queue or self._stopping())
+                if self._stopping():
+                    return
+                job = self._current = self._queue.popleft()
+            try:
+                self._execute(job)
+            except Exception:
+                if self._stopping():  # the link or the server went away while answering
+                    return
+                log.exception("cmm_sim.job_failed", tag=job.tag, method=job.method)
+                failed = Reply(job.tag, job.method)
+                failed.error(Code.ERROR_PROCESSING_METHOD)
+                self._finish(job.tag, failed.lines, FaultPlan())
+            finally:
+                with self._cv:
+                    self._current = None
+                    self._cv.notify_all()
+
+    def _execute(self, job: Job) -> None:
+        reply = Reply(job.tag, job.method)
+        if job.aborted:
+            reply.error(Code.TRANSACTION_ABORTED, record=False)
+        elif job.error is not None:
+            reply.error(job.error.code)
+        else:
+            assert job.command is not None
+            self._run(job.command, job.plan, reply)
+        self._serious(reply)  # before the ``%``: a command sent after it is not pending
+        self._finish(job.tag, reply.lines, job.plan)
+
+    def _run(self, cmd: Command, plan: FaultPlan, reply: Reply) -> None:
+        if cmd.method not in MOVING or not self.state.in_session or self._refusal(cmd.method):
+            self._answer(cmd, reply)
+            return
+        self.machine.look()
+        with self._state_lock:
+            if self._refusal(cmd.method):  # the platform struck the ball just now: the session is in error
+                reply.refuse()
+                return
+            try:
+                motion = self.handlers.motion_for(cmd, reply, plan)
+            except ArgumentError as err:
+                reply.error(err.code)
+                return
+        if motion is None:
+            return
+        machine = self.machine
+        with machine.motion_lock:
+            with machine.stop_lock:
+                if self._abort_asked:
+                    reply.error(Code.TRANSACTION_ABORTED, record=False)
+                    return
+                machine.motion_stop.clear()
+            machine.user_enabled = False  # 6.3.2.4: moving implies DisableUser()
+            try:
+                machine.run(motion, self._stop.wait)
+            except MotionStopped as stopped:
+                log.info("cmm_sim.motion_stopped", tag=cmd.tag, reason=stopped.reason)
+                emergency = stopped.reason == "emergency"
+                reply.error(Code.EMERGENCY_STOP if emergency else Code.TRANSACTION_ABORTED, record=emergency)
+                return
+        if cmd.method == Method.CHANGE_TOOL:
+            self._report_now()  # 6.3.2.7: a virtual move of the tool is reported too
+        self.handlers.report(motion, reply)
+
+    # ------------------------------------------------------------------ events
+
+    def _on_move(self, position: np.ndarray, dt: float) -> None:
+        """The machine moved (any link's motion): OnMoveReportE's daemon reports when due (6.3.2.7)."""
+        daemon = self.state.daemon
+        if daemon is None:
+            return
+        daemon.since_s += dt
+        if daemon.since_s < REPORT_INTERVAL_S - TIME_TOL_S:
+            return
+        report = daemon.report
+        moved = float(np.linalg.norm(position - daemon.last_mm))
+        due = (report.time_s is None and report.dis_mm is None) or \
+            (report.time_s is not None and daemon.since_s >= report.time_s - TIME_TOL_S) or \
+            (report.dis_mm is not None and moved >= report.dis_mm)
+        if due:
+            self._emit_report(position)
+
+    def _report_now(self) -> None:
         with self.machine.lock:
-            target = self.machine.position_mm.copy()
-        for i, axis in enumerate(("X", "Y", "Z")):
-            if axis in axes:
-                target[i] = axes[axis][0]
-        if np.any(np.abs(target) > MACHINE_VOLUME_LIMIT_MM):
-            raise CommandRejected("", ErrorCode.OUT_OF_MACHINE_VOLUME)
-        return target
+            position = self.machine.position_mm.copy()
+        if self.state.daemon is not None:
+            self._emit_report(position)
 
-    def _start_session(self, _plan: FaultPlan) -> tuple[float, list[str]]:
-        self.in_session = True
-        self.search_mm = DEFAULT_SEARCH_DISTANCE_MM
-        self.machine.latch(None)
-        return 0.0, []
+    def _emit_report(self, position: np.ndarray) -> None:
+        daemon = self.state.daemon
+        if daemon is None:
+            return
+        daemon.since_s, daemon.last_mm = 0.0, position.copy()
+        items = daemon.report.items or ("X", "Y", "Z")
+        data = ", ".join(measured_item(item, self.machine, position, None) for item in items)
+        self._write_event(line(daemon.tag, Marker.DATA, data))
 
-    def _end_session(self, _plan: FaultPlan) -> tuple[float, list[str]]:
-        self.in_session = False
-        return 0.0, []
+    def _on_machine_event(self, code: Code, where: str) -> None:
+        """An unsolicited error of the machine (an emergency stop, a platform that struck the ball): ``E0000 !``."""
+        if not self.state.in_session:
+            return
+        reply = Reply(SERVER_EVENT_TAG, where)
+        reply.error(code)
+        self._serious(reply)
+        self._write_event(reply.lines[0])
 
-    def _clear(self, _plan: FaultPlan) -> tuple[float, list[str]]:
-        self.machine.latch(None)
-        return 0.0, []
-
-    def _error_info(self, call: Call) -> Callable[[FaultPlan], tuple[float, list[str]]]:
-        if len(call.args) != 1 or not isinstance(call.args[0], float) or call.args[0] != int(call.args[0]):
-            raise ValueError("GetErrorInfo needs one integer code")
-        try:
-            code = ErrorCode(int(call.args[0]))
-        except ValueError:
-            raise CommandRejected("", ErrorCode.ARGUMENT_OUT_OF_RANGE, "unknown error code") from None
-        return lambda _plan: (0.0, [f'ErrorInfo({int(code):04d}, "{ERRORS[code].text}")'])
-
-    def _set_prop(self, call: Call) -> Callable[[FaultPlan], tuple[float, list[str]]]:
-        if len(call.args) != 1 or not isinstance(call.args[0], Call):
-            raise ValueError("SetProp needs one property")
-        prop = call.args[0]
-        if prop.name != SEARCH_PROPERTY:
-            raise CommandRejected("", ErrorCode.BAD_PROPERTY, prop.name[:60])
-        if len(prop.args) != 1 or not isinstance(prop.args[0], float):
-            raise ValueError(f"{SEARCH_PROPERTY} needs one number")
-        value = prop.args[0]
-        if not 0 < value <= MAX_SEARCH_DISTANCE_MM:
-            raise CommandRejected(
-                "", ErrorCode.ARGUMENT_OUT_OF_RANGE, f"search distance must be in (0, {MAX_SEARCH_DISTANCE_MM}]"
-            )
-
-        def apply(_plan: FaultPlan) -> tuple[float, list[str]]:
-            self.search_mm = value
-            return 0.0, []
-
-        return apply
+    def close(self) -> None:
+        """The link ended: stop the worker (a motion it runs is stopped), forget the daemons."""
+        self._closed.set()
+        with self._cv:
+            if self._current is not None:
+                self.machine.request_stop("abort")
+            self._cv.notify_all()
+        self._worker.join(ABORT_WAIT_S)
+        self.state.daemon = None
+        for listeners, own in ((self.machine.move_listeners, self._on_move),
+                               (self.machine.event_listeners, self._on_machine_event)):
+            if own in listeners:
+                listeners.remove(own)

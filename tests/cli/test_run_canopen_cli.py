@@ -1,7 +1,7 @@
 """`hilcal upload` and `hilcal rollback` on CANopen controllers, by station file alone.
 
-The ACME LX-200 (tests/drivers/acme_lx200.eds, a plain ``canopen.LocalNode``: ``tests/drivers/canopen_peer.py``) on
-python-can's virtual bus, so the commands run in this process: its leg offsets round-trip exactly (µm integers).
+The ACME LX-200 (tests/drivers/controller/acme_lx200.eds, a plain ``canopen.LocalNode``:
+``tests/drivers/controller/canopen_peer.py``) on python-can's virtual bus, so the commands run in this process: its leg offsets round-trip exactly (µm integers).
 The simulated HX-6 (``hilcal sim --controller canopen --state-file``, a subprocess on its SLCAN pty) killed with
 SIGKILL in the middle of an upload: after its restart, ``hilcal upload`` or ``hilcal rollback`` again leave it
 holding the new set or the old one, never a mix, every value read back by ``canopen``'s own ``SdoClient``.
@@ -31,7 +31,7 @@ from procedures.records import Records, upload_parameter_file
 from procedures.sections.controller import open_parameters
 from procedures.station import load_station, save_station, station_from_channels
 from sim_devices.launcher import spawn_sim_subprocess, stop_sim_subprocess
-from tests.drivers.canopen_peer import ACME_EDS, AcmePeer
+from tests.drivers.controller.canopen_peer import ACME_EDS, AcmePeer
 
 pytestmark = [pytest.mark.timeout(120),
               # a killed simulator's pty ends python-can's notifier thread of the link that was talking to it

@@ -11,7 +11,7 @@ import threading
 import numpy as np
 import pytest
 
-from drivers.cmm.serial import SerialCmmConfig
+from drivers.cmm.ippdme import IppDmeConfig
 from drivers.controller.modbus import ParameterSet
 from hilcal.kinematics import Geometry, inverse_kinematics
 from hilcal.protocols.controller_states import FaultCode
@@ -110,13 +110,15 @@ def test_a_fault_seen_when_the_link_returns_ends_the_run(sim, devices, tmp_path)
 
 def test_a_cmm_silent_beyond_the_drivers_resends_is_retried(sim, tmp_path):
     station = station_from_channels(sim.channels())
-    quick = station.model_copy(update={  # 0.3 s per unanswered command instead of 1 s: the same rule, sooner
-        "cmm": station.cmm.model_copy(update={"serial": SerialCmmConfig(ack_timeout_s=0.3)}),
+    quick = station.model_copy(update={  # 0.3 s per unanswered command: the same rules, sooner
+        "cmm": station.cmm.model_copy(update={"ippdme": IppDmeConfig(ack_timeout_s=0.3, abort_timeout_s=0.3)}),
         "links": LinksSection(cmm_wait_s=0.1)})
     with open_devices(quick) as devices, Journal(tmp_path / "j.sqlite") as journal:
         engine = Engine(devices, journal)
         engine.run(iter_once(m.PrepareCmm()))
-        sim.cmm_server.faults.inject("silence", count=4)  # 1 + max_retries (2) attempts fail, then one more
+        # the measurement's first command (a query: SetProp) is asked 1 + query_retries (2) times, all silent: the
+        # engine holds and measures again; that one's first command meets the fourth silence and is asked again
+        sim.cmm_server.faults.inject("silence", count=4)
         row = engine.run(iter_once(m.Measure("measure", 0, m.as_tuple(devices.robot.home))))
         assert row["index"] == 0 and len(journal.measurements(("measure",))) == 1
         cmm = [e["data"] for e in journal.events("link_hold") if e["data"]["link"] == "cmm"]

@@ -43,7 +43,8 @@ def full_station(**overrides: object) -> StationConfig:
         "cmm": {
             "url": "socket://10.0.0.5:1294",
             "alignment": YAW_90,
-            "serial": {"command_timeout_s": 12.5, "max_retries": 1},
+            "tool": "Probe2",
+            "ippdme": {"motion_timeout_s": 12.5, "query_retries": 1},
             "probing": {"n_ring": 8, "elevations_deg": [20.0, 45.0]},
         },
         "motion": {"move_timeout_s": 90.0, "connect_timeout_s": 2.0},
@@ -178,7 +179,7 @@ def test_open_devices_on_the_simulator(sim: SimHandle) -> None:
         np.testing.assert_allclose(result.pose[:3], sim.controller.true_pose()[:3], atol=0.01)
     assert wait_for(lambda: not sim.controller_servers.slcan.is_open), "closing the devices must close the CAN link"
     assert wait_for(lambda: not devices.controller.controller_alive)
-    assert not devices.cmm._port.is_open
+    assert not devices.cmm.is_open
 
 
 def test_a_failing_device_closes_the_others(sim: SimHandle, tmp_path: Path) -> None:

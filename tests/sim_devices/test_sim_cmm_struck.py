@@ -1,35 +1,38 @@
 """The simulated CMM notices a platform that carries a tooling sphere through the parked probe: a crash ("struck").
 
-Driven over a real pty with the CMM driver's primitives (``SerialCmm.goto`` and ``.probe``); the platform is moved as
-the controller moves it (``rig.move_to_lengths`` of the controller's IK). Sphere centres are computed here from
+Driven over a real pty with a test client (not hilcal's driver); the platform is moved as the controller moves it
+(``rig.move_to_lengths`` of the controller's IK). The machine notices the strike at the next command: an unsolicited
+``E0000 ! Error(3, 2504, ...)`` (6.2.4) puts the session in its error state, so that command is refused (0511, 0514)
+until ClearAllErrors. Sphere centres are computed here from
 ``rig.true_pose()`` with scipy rotations and ``rig.to_cmm``, independently of the simulator; every probe position is
 laid out by hand beside a platform sphere: ahead of it on its way, behind it, beside or above its way, on the arc or
-the chord of a turn.
+the chord of a turn. The stylus ball (radius 1.5 mm) is struck when a sphere's surface comes within its radius.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from structlog.testing import capture_logs
 
-from drivers.cmm.base import CmmError
-from drivers.cmm.serial import SerialCmm, SerialCmmConfig
 from hilcal.robot import default_robot
 from sim_devices.cmm.config import CmmServerConfig
 from sim_devices.cmm.server import CmmServerHandle, start_cmm_server
 from sim_devices.rig.config import RigConfig, load_errors
 from sim_devices.rig.rig import SimulatedRig
+from tests.conformance.ipp_client import IppClient, IppError, IppSession
 
 pytestmark = pytest.mark.timeout(60)
 
 ROBOT = default_robot()
 R = ROBOT.sphere_radius_mm
-FAST = SerialCmmConfig(ack_timeout_s=0.5, command_timeout_s=0.5, home_timeout_s=0.5, max_retries=0)
-TRANSACTION_ABORTED = 6
+BALL = 1.5
+REFUSED = [511, 514]
+STRUCK = 'E0000 ! Error(3, 2504, "PlatformStruckProbe", "Collision")'
 SHIFT_MM = 60.0
 """The platform's move: this far along the base x axis (from the home pose)."""
 K = 0
@@ -70,25 +73,36 @@ def rig() -> SimulatedRig:
     return rig
 
 
-def open_cmm(rig: SimulatedRig, **config: object) -> tuple[CmmServerHandle, SerialCmm]:
+@contextmanager
+def open_cmm(rig: SimulatedRig, **config: object) -> Iterator[tuple[CmmServerHandle, IppSession]]:
     server = start_cmm_server(ROBOT, rig, CmmServerConfig(seed=3, time_scale=0.0, noise_sigma_mm=0.0, **config))
-    cmm = SerialCmm(server.path, FAST)
-    cmm.start_session()
-    cmm.home()
-    return server, cmm
+    client = IppClient.pty(server.path)
+    try:
+        cmm = IppSession(client)
+        cmm.start()
+        yield server, cmm
+    finally:
+        client.close()
+        server.close()
 
 
 @pytest.fixture
-def default_cmm(rig: SimulatedRig) -> Iterator[tuple[CmmServerHandle, SerialCmm]]:
+def default_cmm(rig: SimulatedRig) -> Iterator[tuple[CmmServerHandle, IppSession]]:
     """The simulated CMM with its default ``on_collision`` (stop)."""
-    server, cmm = open_cmm(rig)
-    assert server.config.on_collision == "stop"
-    yield server, cmm
-    cmm.close()
-    server.close()
+    with open_cmm(rig) as (server, cmm):
+        assert server.config.on_collision == "stop"
+        yield server, cmm
 
 
-def park(cmm: SerialCmm, rig: SimulatedRig, point: np.ndarray) -> None:
+def refused_after_strike(cmm: IppSession, point: np.ndarray) -> IppError:
+    """A GoTo to ``point`` that the strike noticed at it refuses; the unsolicited error came with it."""
+    with pytest.raises(IppError) as refused:
+        cmm.goto(point)
+    assert refused.value.codes == REFUSED and refused.value.transaction.others == [STRUCK]
+    return refused.value
+
+
+def park(cmm: IppSession, rig: SimulatedRig, point: np.ndarray) -> None:
     """Down onto `point` from 300 mm above it (clear of every sphere: the tests check no collision)."""
     cmm.goto(point + 300.0 * cmm_direction(rig, [0.0, 0.0, 1.0]))
     cmm.goto(point)
@@ -98,31 +112,30 @@ def test_a_platform_sphere_carried_through_the_parked_probe_is_a_latched_collisi
     server, cmm = default_cmm
     before = platform_centres(rig)[K]
     x = cmm_direction(rig, [1.0, 0.0, 0.0])
-    park(cmm, rig, before + (R + 10.0) * x)
-    touched = cmm.probe(before + R * x, x)  # a touch on the sphere's side, on its way: the probe stays 5 mm off
-    assert abs((touched - before) @ x - R) < 1e-5 and server.collisions == 0
-    ahead = before + (R + 5.0) * x
-    move_platform(rig, SHIFT_MM)  # the sphere sweeps through the probe and comes to rest beyond it
+    park(cmm, rig, before + (R + 30.0) * x)
+    touched = np.array(cmm.ptmeas(before + R * x, x))  # a touch on the sphere's side, on its way
+    assert abs((touched - before) @ x - (R + BALL)) < 1e-5 and server.collisions == 0
+    ahead = before + (R + BALL + 10.0) * x  # where the retract (10 mm) left the ball
+    np.testing.assert_allclose(cmm.position(), ahead, atol=1e-6)
+    move_platform(rig, SHIFT_MM)  # the sphere sweeps through the ball and comes to rest beyond it
     after = platform_centres(rig)[K]
-    assert distance_to_segment(ahead, before, after) < 1.0  # the probe stood on the sphere's way, near its middle
+    assert distance_to_segment(ahead, before, after) < 1.0  # the ball stood on the sphere's way, near its middle
     assert np.linalg.norm(after - ahead) > R + 20.0  # and is clear of where the sphere stopped
     with capture_logs() as logs:
-        with pytest.raises(CmmError) as refused:
-            cmm.goto(ahead + 50.0 * cmm_direction(rig, [0.0, 0.0, 1.0]))
-    assert refused.value.code == TRANSACTION_ABORTED
-    assert "after error 2504" in refused.value.text and "platform sphere 1" in refused.value.text
+        refused_after_strike(cmm, ahead + 50.0 * cmm_direction(rig, [0.0, 0.0, 1.0]))
     [event] = collision_events(logs)
     assert event["kind"] == "struck" and event["code"] == 2504 and event["stopped"] and event["command"] is None
     assert event["sphere"] == K and event["sphere_name"] == "platform sphere 1" and event["collisions"] == 1
-    np.testing.assert_allclose(event["contact_mm"], ahead, atol=1e-3)  # where the probe stood
+    np.testing.assert_allclose(event["contact_mm"], ahead, atol=1e-3)  # where the ball stood
     np.testing.assert_allclose(event["from_mm"], before, atol=1e-3)  # the sphere's way
     np.testing.assert_allclose(event["to_mm"], after, atol=1e-3)
     assert server.collisions == 1
-    with pytest.raises(CmmError) as still:  # latched as after any crash, and counted once
-        cmm.probe(after + R * x, x)
-    assert still.value.code == TRANSACTION_ABORTED and server.collisions == 1
-    cmm.clear_errors()
-    cmm.goto(ahead + 50.0 * cmm_direction(rig, [0.0, 0.0, 1.0]))  # the probe was left where it stood
+    with pytest.raises(IppError) as still:  # the error state, as after any crash, and counted once
+        cmm.ptmeas(after + R * x, x)
+    assert still.value.codes == REFUSED and server.collisions == 1
+    cmm.clear()
+    np.testing.assert_allclose(cmm.position(), ahead, atol=1e-6)  # the ball was left where it stood
+    cmm.goto(ahead + 50.0 * cmm_direction(rig, [0.0, 0.0, 1.0]))
     assert server.collisions == 1
 
 
@@ -132,15 +145,15 @@ def test_a_probe_parked_off_the_spheres_way_is_not_struck(default_cmm, rig, wher
     before = platform_centres(rig)[K]
     x, y, z = (cmm_direction(rig, axis) for axis in np.eye(3))
     spot = {"behind": before - (R + 10.0) * x,  # the sphere moves away from it
-            "beside": before + 0.5 * SHIFT_MM * x + (R + 3.0) * y,  # 3 mm off the way's edge, halfway along
+            "beside": before + 0.5 * SHIFT_MM * x + (R + 3.0) * y,  # 3 mm off the way's edge: 1.5 mm off the ball
             "above": before + 0.5 * SHIFT_MM * x + 200.0 * z}[where]
     park(cmm, rig, spot)
     with capture_logs() as logs:
         move_platform(rig, SHIFT_MM)
         assert distance_to_segment(spot, before, platform_centres(rig)[K]) > R + 2.0
         cmm.goto(spot + 50.0 * z)
-        touched = cmm.probe(platform_centres(rig)[K] + R * z, z)  # the moved sphere's top: the CMM works on
-    assert abs((touched - platform_centres(rig)[K]) @ z - R) < 1e-5
+        touched = np.array(cmm.ptmeas(platform_centres(rig)[K] + R * z, z))  # the moved sphere's top: works on
+    assert abs((touched - platform_centres(rig)[K]) @ z - (R + BALL)) < 1e-5
     assert not collision_events(logs) and server.collisions == 0
 
 
@@ -150,23 +163,22 @@ def test_a_sphere_that_stops_over_the_probe_pushes_it_to_its_surface(default_cmm
     x = cmm_direction(rig, [1.0, 0.0, 0.0])
     spot = before + (R + 10.0) * x
     park(cmm, rig, spot)
-    move_platform(rig, R + 12.0)  # the sphere's centre stops 2 mm past the probe
+    move_platform(rig, R + 12.0)  # the sphere's centre stops 2 mm past the ball's
     after = platform_centres(rig)[K]
     assert np.linalg.norm(after - spot) < R - 1.0
-    with pytest.raises(CmmError) as refused:
-        cmm.goto(spot)
-    assert refused.value.code == TRANSACTION_ABORTED and server.collisions == 1
-    cmm.clear_errors()
+    refused_after_strike(cmm, spot)
+    assert server.collisions == 1
+    cmm.clear()
+    assert np.linalg.norm(np.array(cmm.position()) - after) == pytest.approx(R + BALL)  # pushed to the surface
     cmm.goto(after - (R + 20.0) * x)  # from the surface the sphere pushed it to, away from the sphere: no crash
     assert server.collisions == 1
-    with pytest.raises(CmmError):
+    with pytest.raises(IppError):
         cmm.goto(after + (R + 20.0) * x)  # but not through the sphere
     assert server.collisions == 2
 
 
 def test_counting_mode_counts_a_strike_without_latching(rig) -> None:
-    server, cmm = open_cmm(rig, on_collision="count")
-    try:
+    with open_cmm(rig, on_collision="count") as (server, cmm):
         before = platform_centres(rig)[K]
         x = cmm_direction(rig, [1.0, 0.0, 0.0])
         park(cmm, rig, before + (R + 10.0) * x)
@@ -175,9 +187,6 @@ def test_counting_mode_counts_a_strike_without_latching(rig) -> None:
             cmm.goto(before + (R + 10.0) * x + 50.0 * cmm_direction(rig, [0.0, 0.0, 1.0]))
         assert [(e["kind"], e["stopped"]) for e in collision_events(logs)] == [("struck", False)]
         assert server.collisions == 1
-    finally:
-        cmm.close()
-        server.close()
 
 
 def turn_platform(rig: SimulatedRig, yaw_deg: float) -> None:
@@ -204,9 +213,7 @@ def test_a_turning_platform_strikes_along_its_arc_not_its_chord(default_cmm, rig
     turn_platform(rig, 10.0)
     with capture_logs() as logs:
         if where == "on the arc":
-            with pytest.raises(CmmError) as refused:
-                cmm.goto(spot + 50.0 * cmm_direction(rig, [0.0, 0.0, 1.0]))
-            assert refused.value.code == TRANSACTION_ABORTED
+            refused_after_strike(cmm, spot + 50.0 * cmm_direction(rig, [0.0, 0.0, 1.0]))
         else:
             cmm.goto(spot + 50.0 * cmm_direction(rig, [0.0, 0.0, 1.0]))
     assert [e["kind"] for e in collision_events(logs)] == (["struck"] if where == "on the arc" else [])

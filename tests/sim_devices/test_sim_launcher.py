@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivers.cmm.serial import SerialCmm
+from drivers.cmm.ippdme import IppDmeCmm
 from drivers.controller.hilcal_can import ControllerCan
 from drivers.controller.modbus import ControllerParams
 from hilcal.kinematics import Geometry, inverse_kinematics
@@ -80,7 +80,7 @@ def test_real_drivers_on_spawned_simulator_then_sigterm(spawn: Spawn, tmp_path: 
         with ControllerParams(ch["modbus"]["host"], ch["modbus"]["port"], device_id=ch["modbus"]["device_id"]) as p:
             assert p.read_identity().parameter_count == 42
             np.testing.assert_array_equal(p.read_live().to_vector(), NOMINAL.astype(np.float32).astype(float))
-        with SerialCmm(ch["cmm"]["url"]) as cmm:
+        with IppDmeCmm(ch["cmm"]["url"]) as cmm:
             cmm.start_session()
             cmm.home()
             result = cmm.measure_pose(ROBOT, np.asarray(ch["cmm_alignment"]), POSE)

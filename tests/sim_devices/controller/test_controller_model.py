@@ -22,7 +22,17 @@ from hilcal.robot import Robot
 from sim_devices.controller.state_machine import ControllerSimConfig, SimulatedController
 from sim_devices.rig.config import GeometryErrors, RigConfig
 from sim_devices.rig.rig import SimulatedRig
-from tests.drivers.can_frames import ID_ACK, ID_COMMAND, ID_ESTOP, ID_FAULT_EVENT, ID_STATUS, R, S, crc8_bitwise, seal
+from tests.drivers.controller.can_frames import (
+    ID_ACK,
+    ID_COMMAND,
+    ID_ESTOP,
+    ID_FAULT_EVENT,
+    ID_STATUS,
+    R,
+    S,
+    crc8_bitwise,
+    seal,
+)
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -38,7 +38,7 @@ from sim_devices.controller.slcan_server import SlcanServer
 from sim_devices.controller.state_machine import ControllerSimConfig, SimulatedController
 from sim_devices.rig.config import GeometryErrors, RigConfig
 from sim_devices.rig.rig import SimulatedRig
-from tests.drivers.can_frames import (
+from tests.drivers.controller.can_frames import (
     HEARTBEAT_TIMEOUT_S,
     ID_ACK,
     ID_COMMAND,

@@ -23,7 +23,7 @@ from sim_devices.controller.slcan_server import SlcanServer
 from sim_devices.controller.state_machine import ControllerSimConfig, SimulatedController
 from sim_devices.rig.config import GeometryErrors, RigConfig
 from sim_devices.rig.rig import SimulatedRig
-from tests.drivers.can_frames import HEARTBEAT_TIMEOUT_S, ik
+from tests.drivers.controller.can_frames import HEARTBEAT_TIMEOUT_S, ik
 
 pytestmark = pytest.mark.timeout(60)
 POSE = [35.0, -20.0, 3150.0, 1.5, -2.0, 3.0]

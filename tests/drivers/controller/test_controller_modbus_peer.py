@@ -39,7 +39,7 @@ from hilcal.robot import Robot
 
 pytestmark = pytest.mark.timeout(60)
 
-MAP_FILE = Path(__file__).resolve().parents[2] / "examples" / "modbus_maps" / "hexapod-cdab.toml"
+MAP_FILE = Path(__file__).resolve().parents[3] / "examples" / "modbus_maps" / "hexapod-cdab.toml"
 SPEC = tomllib.loads(MAP_FILE.read_text())
 PARTS = {"a": (0, 18), "b": (18, 36), "l0": (36, 42)}
 FMT = {"u16": "H", "u32": "I", "i32": "i", "f32": "f"}

@@ -25,7 +25,7 @@ from hilcal.protocols.controller_states import ControllerState
 from hilcal.robot import Robot
 from procedures.sections.controller import open_canopen
 from procedures.station import CanSection, StationConfig, StationConfigError, load_station
-from tests.drivers.canopen_peer import AcmePeer
+from tests.drivers.controller.canopen_peer import AcmePeer
 
 pytestmark = pytest.mark.timeout(60)
 STATION = Path(__file__).with_name("acme_lx200_station.toml")

@@ -36,7 +36,7 @@ from sim_devices.rig.rig import SimulatedRig
 
 pytestmark = pytest.mark.timeout(60)
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 DEFAULT_FILE = ROOT / "hilcal" / "protocols" / "modbus_maps" / "hilcal-1.1.toml"
 EXAMPLE_FILE = ROOT / "examples" / "modbus_maps" / "hexapod-cdab.toml"
 DEFAULT = tomllib.loads(DEFAULT_FILE.read_text())

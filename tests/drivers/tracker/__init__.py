@@ -1,0 +1,1 @@
+"""Tests of the laser tracker driver (Leica emScon) against the simulated tracker and cesapi."""
