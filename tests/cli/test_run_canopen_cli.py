@@ -1,7 +1,8 @@
 """`hilcal upload` and `hilcal rollback` on CANopen controllers, by station file alone.
 
 The ACME LX-200 (tests/drivers/controller/acme_lx200.eds, a plain ``canopen.LocalNode``:
-``tests/drivers/controller/canopen_peer.py``) on python-can's virtual bus, so the commands run in this process: its leg offsets round-trip exactly (µm integers).
+``tests/drivers/controller/canopen_peer.py``) on python-can's virtual bus, so the commands run in this process: its
+leg offsets round-trip exactly (µm integers).
 The simulated HX-6 (``hilcal sim --controller canopen --state-file``, a subprocess on its SLCAN pty) killed with
 SIGKILL in the middle of an upload: after its restart, ``hilcal upload`` or ``hilcal rollback`` again leave it
 holding the new set or the old one, never a mix, every value read back by ``canopen``'s own ``SdoClient``.
