@@ -538,8 +538,12 @@ def _record_outcome(recorder: Any, journal: Journal, run_id: str, operator: str 
         report = json.loads(result.report_path.read_text())
         fields["verify_before"] = report["verification"]["before"]
         fields["verify_after"] = report["verification"]["after"]
-    upload = journal.step("upload")
-    staged_upload = None
-    if upload is not None and upload.get("record"):
-        staged_upload = {"upload_id": f"{run_id}/upload", "record": upload["record"], "operator": operator}
-    recorder.write(journal, run=fields, upload=staged_upload)
+    from procedures.records.sync import stage
+
+    upload = journal.step("upload") or {}
+    if upload.get("record"):
+        stage(journal, upload={"upload_id": f"{run_id}/upload", "record": upload["record"], "operator": operator})
+    saved = None  # the save is a step of its own, with its own record
+    if upload.get("save_record"):
+        saved = {"upload_id": f"{run_id}/save", "record": upload["save_record"], "operator": operator}
+    recorder.write(journal, run=fields, upload=saved)

@@ -224,3 +224,40 @@ def test_design_prints_the_iso_poses_and_the_test_time(tmp_path: Path) -> None:
     assert sorted(rows) == ["P1", "P2", "P3", "P4", "P5"]
     assert "3100.000" in rows["P1"] and "-200.000" in rows["P2"] and "2900.000" in rows["P2"]
     assert "20 measurements" in result.output and "P1, P5, P4, P3, P2" in result.output
+
+
+def test_the_cmm_conversation_is_kept_and_speaks_the_standard(accepted: tuple[Path, subprocess.CompletedProcess]
+                                                              ) -> None:
+    """instrument_transcript.txt holds every line sent and received, `<ISO time> > line` / `<ISO time> < line`; every
+    command passes NIST's command checks and every response NIST's response checks (tests/conformance/nist_grammar.py;
+    the 1.4.3 forms NIST's 1.40-era parsers predate are noted, not refused), and every transaction is `&` first and
+    `%` last, also after `!` (6.2.3)."""
+    from datetime import datetime
+
+    from tests.conformance.nist_grammar import check_command_line, check_response_line, version_notes
+
+    tmp, _ = accepted
+    lines = (tmp / "run" / "instrument_transcript.txt").read_text().splitlines()
+    assert len(lines) > 1000
+    problems, notes, open_tags, closed = [], set(), {}, 0
+    for number, line in enumerate(lines, 1):
+        stamp, direction, body = line.split(" ", 2)
+        assert datetime.fromisoformat(stamp).tzinfo is not None and direction in "<>", line
+        found = check_command_line(body) if direction == ">" else check_response_line(body)
+        problems += [f"line {number}: {body}: {p}" for p in found]
+        notes |= set(version_notes(body))
+        tag, marker = body[:5], body[6:7]
+        if direction == ">":
+            open_tags[tag] = []
+        elif tag != "E0000":
+            seen = open_tags[tag]
+            assert (marker == "&") == (not seen), f"line {number}: {body}: '&' must come first, and once"
+            seen.append(marker)
+            if marker == "%":
+                del open_tags[tag]
+                closed += 1
+    assert not problems, "\n".join(problems[:20])
+    assert not open_tags, f"transactions never completed: {sorted(open_tags)}"
+    assert closed > 500 and notes <= {"1.4.3: Tool.AvrRadius() (6.3.13)",
+                                      "1.4.3: GetMachineClass answers an enumeration, not a string (6.3.2.8)",
+                                      "1.4.3: Q() (6.3.2.24)"}, notes
