@@ -83,7 +83,16 @@ from typing import Any
 
 import numpy as np
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from drivers.cmm.base import ProbingConfig, as_transform
 from drivers.cmm.ippdme import IppDmeCmm, IppDmeConfig
@@ -235,7 +244,8 @@ class StationConfig(_Strict):
     robot: Path | None = Field(default=None, description="robot TOML file; None: the built-in paper Table 1 robot")
     name: str | None = Field(default=None, min_length=1, max_length=100, description="this calibration station")
     machine: MachineSection = Field(default_factory=MachineSection)
-    can: CanSection
+    can: CanSection | None = None
+    """The controller's CAN bus (a station to run with needs it; ``hilcal check`` checks only what a file names)."""
     controller: ControllerSection = Field(default_factory=HilcalControllerSection)
     modbus: ModbusSection | None = None
     instrument: InstrumentSection = Field(default_factory=InstrumentSection)
@@ -250,7 +260,12 @@ class StationConfig(_Strict):
     operator: str | None = None
 
     @model_validator(mode="after")
-    def _its_instrument(self) -> StationConfig:
+    def _its_instrument(self, info: ValidationInfo) -> StationConfig:
+        if (info.context or {}).get("partial"):
+            return self
+        if self.can is None:
+            raise ValueError("a station needs a [can] section: the controller's CAN bus (interface, channel; "
+                             "python-can's settings)")
         if self.controller.kind == "hilcal" and self.modbus is None:
             raise ValueError("a station with hilcal's own controller ([controller] kind = \"hilcal\", the default) "
                              "needs a [modbus] section (its parameter interface); a CANopen controller says "
@@ -262,6 +277,10 @@ class StationConfig(_Strict):
             raise ValueError("[instrument] kind = \"tracker\" needs a [tracker] section (host, alignment, "
                              "environment, platform_targets_mm, base_monuments_mm)")
         return self
+
+    def has_controller(self) -> bool:
+        """The file names the controller: its CAN bus and, for hilcal's own controller, its [modbus] too."""
+        return self.can is not None and (self.controller.kind != "hilcal" or self.modbus is not None)
 
     def instrument_address(self) -> str:
         """Where the station's measuring instrument is: the CMM's URL, or the tracker's host:port."""
@@ -289,16 +308,18 @@ def _format_errors(err: ValidationError, source: str) -> str:
     return "\n".join(lines)
 
 
-def station_from_dict(data: dict[str, Any], source: str = "<station>") -> StationConfig:
-    """Validate parsed station settings; StationConfigError naming every bad field."""
+def station_from_dict(data: dict[str, Any], source: str = "<station>", *, partial: bool = False) -> StationConfig:
+    """Validate parsed station settings; StationConfigError naming every bad field. ``partial``: a file may name only
+    some of the station's devices (``hilcal check``); every section it has is checked as usual."""
     try:
-        return StationConfig.model_validate(data)
+        return StationConfig.model_validate(data, context={"partial": partial})
     except ValidationError as err:
         raise StationConfigError(_format_errors(err, source)) from None
 
 
-def load_station(path: str | Path) -> StationConfig:
-    """Read a station TOML file; relative ``robot``/``records`` paths are taken relative to the file."""
+def load_station(path: str | Path, *, partial: bool = False) -> StationConfig:
+    """Read a station TOML file; relative ``robot``/``records`` paths are taken relative to the file. ``partial``:
+    see ``station_from_dict``."""
     p = Path(path)
     source = f"station file {p}"
     try:
@@ -318,7 +339,7 @@ def load_station(path: str | Path) -> StationConfig:
     url = data["records"].get("url") if isinstance(data.get("records"), dict) else None
     if isinstance(url, str) and url and "://" not in url and not Path(url).is_absolute():
         data["records"]["url"] = str(base / url)
-    return station_from_dict(data, source)
+    return station_from_dict(data, source, partial=partial)
 
 
 def station_to_toml(station: StationConfig) -> str:
@@ -409,7 +430,7 @@ def open_devices(station: StationConfig, *, check: bool = True, run_folder: str 
     except RobotFileError as err:
         raise DeviceOpenError(f"robot: {err}") from None
     with ExitStack() as stack:
-        controller, params = _open_controller(station, robot, stack, check)
+        controller, params = open_controller(station, robot, stack, check)
         tracker, cmm, alignment = None, None, None
         t = station.measuring_tracker()
         try:
@@ -442,7 +463,7 @@ def open_devices(station: StationConfig, *, check: bool = True, run_folder: str 
     return devices
 
 
-def _open_controller(station: StationConfig, robot: Robot, stack: ExitStack, check: bool
+def open_controller(station: StationConfig, robot: Robot, stack: ExitStack, check: bool
                      ) -> tuple[ControllerInterface, ParameterInterface]:
     """The controller and its parameter interface of the station's [controller] kind (closed by ``stack``)."""
     motion = station.motion

@@ -24,6 +24,7 @@ import structlog
 
 from drivers.cmm.probing import Prober
 from drivers.cmm.types import (
+    BaseMeasurement,
     CmmConnectionError,
     CmmDriverError,
     CmmError,
@@ -229,6 +230,13 @@ class CmmInterface(abc.ABC):
         measured = prober.measure_sphere(pred, radius_mm)
         prober.leave(measured, pred.up)
         return measured
+
+    def measure_base(self, robot: Robot, alignment: np.ndarray, alignment_tolerance: tuple[float, float] | None,
+                     platform_pose: np.ndarray, platform_cov: np.ndarray) -> BaseMeasurement:
+        """Measure the base spheres alone, searching from ``alignment`` within ``alignment_tolerance`` as the run's
+        first pose does, and register them on the robot's base layout, without moving the platform: its spheres'
+        regions (``platform_pose`` within ``platform_cov``, as in ``measure_pose``) are kept clear."""
+        return Prober(self).measure_base(robot, alignment, alignment_tolerance, platform_pose, platform_cov)
 
     def measure_pose(self, robot: Robot, alignment: np.ndarray, expected_pose: np.ndarray | None = None,
                      pose_cov: np.ndarray | None = None, alignment_tolerance: tuple[float, float] | None = None,

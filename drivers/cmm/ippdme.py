@@ -216,8 +216,12 @@ class IppDmeCmm(CmmInterface):
         self._in_session = False
         self._query(Method.END_SESSION)
 
+    def is_homed(self) -> bool:
+        """Whether the CMM's axes are homed (6.3.2.2); nothing moves."""
+        return answers.flag(self._query(Method.IS_HOMED), "IsHomed")
+
     def _home(self, force: bool) -> np.ndarray:
-        homed = answers.flag(self._query(Method.IS_HOMED), "IsHomed")
+        homed = self.is_homed()
         if force or not homed or self.config.home == "always":
             self._motion(Method.HOME, timeout_s=self.config.home_timeout_s)
         if self.tool is not None and self.tool != self.active_tool:

@@ -26,6 +26,7 @@ import structlog
 from drivers.cmm.types import (
     DEFAULT_ALIGNMENT_DEG,
     DEFAULT_ALIGNMENT_MM,
+    BaseMeasurement,
     PoseMeasurement,
     PoseMeasurementError,
     ProbeLost,
@@ -317,6 +318,49 @@ class Prober:
 
     # ------------------------------------------------------------------ a pose
 
+    def _start(self, robot: Robot, alignment: np.ndarray, expected: np.ndarray, pose_cov: np.ndarray | None,
+               alignment_tolerance: tuple[float, float] | None) -> tuple[BodyBelief, np.ndarray, np.ndarray,
+                                                                         Regions]:
+        """The base's belief, the platform's transform and covariance, and every sphere's region before a touch."""
+        cfg = self.cfg
+        reach = robot.sphere_radius_mm + self.r
+        mm, deg = alignment_tolerance or (DEFAULT_ALIGNMENT_MM, DEFAULT_ALIGNMENT_DEG)
+        base_belief = BodyBelief.within(as_transform(alignment), mm, deg)
+        cov = BodyBelief.within(np.eye(4), cfg.default_bound_mm, 0.0).cov if pose_cov is None else pose_cov
+        T_bp = transform_from_pose(expected)
+        platform_belief = base_belief.composed(T_bp, np.asarray(cov, dtype=float))
+        regions = Regions()
+        for key, belief, points in (("base", base_belief, robot.base_spheres),
+                                    ("platform", platform_belief, robot.platform_spheres)):
+            for k, s in enumerate(points):
+                pred = belief.predict(s, _up(), cfg.least_bound_mm)
+                regions.balls[f"{key}{k}"] = Ball(pred.centre_mm, reach + pred.bound_mm + cfg.route_margin_mm)
+        return base_belief, T_bp, np.asarray(cov, dtype=float), regions
+
+    def _base(self, robot: Robot, base_belief: BodyBelief, regions: Regions, registered: bool) -> BaseMeasurement:
+        """The base spheres, each predicted from the frame the ones before it conditioned, and their registration."""
+        ceiling = 0.0 if registered else self.cfg.max_search_mm
+        base, _ = self._measure_body("base", base_belief, robot.base_spheres, robot.sphere_radius_mm,
+                                     self.cfg.least_bound_mm, regions, ceiling)
+        R_cb, t_cb, rms_b = rigid_fit(robot.base_spheres, np.array([m.centre_mm for m in base]))
+        T_cb = np.eye(4)
+        T_cb[:3, :3], T_cb[:3, 3] = R_cb, t_cb
+        return BaseMeasurement(spheres=base, refined_alignment=T_cb, registration_rms_mm=float(rms_b))
+
+    def measure_base(self, robot: Robot, alignment: np.ndarray, alignment_tolerance: tuple[float, float] | None,
+                     platform_pose: np.ndarray, platform_cov: np.ndarray) -> BaseMeasurement:
+        """The base spheres alone, the platform not moved (``hilcal check``): its spheres' regions, wherever
+        ``platform_pose`` within ``platform_cov`` can put them, are kept clear; the ball ends parked above every place
+        a platform sphere can reach."""
+        base_belief, _, _, regions = self._start(robot, alignment, np.asarray(platform_pose, dtype=float),
+                                                 platform_cov, alignment_tolerance)
+        measured = self._base(robot, base_belief, regions, registered=False)
+        T_cb = measured.refined_alignment
+        above = T_cb[:3, :3].T @ (measured.spheres[-1].centre_mm - T_cb[:3, 3])  # the last sphere, in the base frame
+        above[2] = park_height_mm(robot, self.cfg.clearance_mm + self.r)
+        self._go(T_cb[:3, :3] @ above + T_cb[:3, 3], list(regions.balls.values()))
+        return measured
+
     def measure_pose(self, robot: Robot, alignment: np.ndarray, expected_pose: np.ndarray | None = None,
                      pose_cov: np.ndarray | None = None, alignment_tolerance: tuple[float, float] | None = None,
                      registered: bool = False) -> PoseMeasurement:
@@ -325,34 +369,17 @@ class Prober:
         cfg = self.cfg
         T0 = as_transform(alignment)
         expected = robot.home if expected_pose is None else np.asarray(expected_pose, dtype=float)
-        r = robot.sphere_radius_mm
-        reach = r + self.r
-        mm, deg = alignment_tolerance or (DEFAULT_ALIGNMENT_MM, DEFAULT_ALIGNMENT_DEG)
-        base_belief = BodyBelief.within(T0, mm, deg)
-        if pose_cov is None:
-            pose_cov = BodyBelief.within(np.eye(4), cfg.default_bound_mm, 0.0).cov
-        T_bp = transform_from_pose(expected)
-        platform_belief = base_belief.composed(T_bp, np.asarray(pose_cov, dtype=float))
-        floor = cfg.least_bound_mm
-        regions = Regions()
-        for key, belief, points in (("base", base_belief, robot.base_spheres),
-                                    ("platform", platform_belief, robot.platform_spheres)):
-            for k, s in enumerate(points):
-                pred = belief.predict(s, _up(), floor)
-                regions.balls[f"{key}{k}"] = Ball(pred.centre_mm, reach + pred.bound_mm + cfg.route_margin_mm)
+        base_belief, T_bp, cov, regions = self._start(robot, T0, expected, pose_cov, alignment_tolerance)
         touches0 = self.cmm.touches
-        ceiling = 0.0 if registered else cfg.max_search_mm
-        base, base_belief = self._measure_body("base", base_belief, robot.base_spheres, r, floor, regions, ceiling)
-        base_centres = np.array([m.centre_mm for m in base])
-        R_cb, t_cb, rms_b = rigid_fit(robot.base_spheres, base_centres)
-        if rms_b > cfg.registration_tol_mm:
+        measured = self._base(robot, base_belief, regions, registered)
+        base, T_cb = measured.spheres, measured.refined_alignment
+        if measured.registration_rms_mm > cfg.registration_tol_mm:
             raise PoseMeasurementError(f"base spheres do not match the robot's base sphere layout: registration RMS "
-                                       f"{rms_b:.4f} mm > {cfg.registration_tol_mm} mm")
-        T_cb = np.eye(4)
-        T_cb[:3, :3], T_cb[:3, 3] = R_cb, t_cb
-        registered = BodyBelief.within(T_cb, REGISTERED_MM, REGISTERED_DEG)
-        platform_belief = registered.composed(T_bp, np.asarray(pose_cov, dtype=float))
-        platform, _ = self._measure_body("platform", platform_belief, robot.platform_spheres, r, floor, regions)
+                                       f"{measured.registration_rms_mm:.4f} mm > {cfg.registration_tol_mm} mm")
+        platform_belief = BodyBelief.within(T_cb, REGISTERED_MM, REGISTERED_DEG).composed(T_bp, cov)
+        platform, _ = self._measure_body("platform", platform_belief, robot.platform_spheres, robot.sphere_radius_mm,
+                                         cfg.least_bound_mm, regions)
+        base_centres = np.array([m.centre_mm for m in base])
         fit = pose_from_spheres(np.array([m.centre_mm for m in platform]), base_centres, robot)
         if fit.platform_rms_mm > cfg.registration_tol_mm:
             raise PoseMeasurementError(f"platform spheres do not match the robot's platform sphere layout: "

@@ -235,6 +235,17 @@ class SphereMeasurement:
 
 
 @dataclass(frozen=True)
+class BaseMeasurement:
+    """The base spheres measured alone and registered on the robot's base layout (``hilcal check``)."""
+
+    spheres: tuple[SphereMeasurement, ...]
+    refined_alignment: np.ndarray
+    """(4, 4) T_cmm<-base registered on the measured spheres."""
+    registration_rms_mm: float
+    """RMS of the registration's residuals: how well the measured centres match the robot file's layout."""
+
+
+@dataclass(frozen=True)
 class PoseMeasurement:
     """A platform pose measured from the base and platform spheres, with everything behind it."""
 

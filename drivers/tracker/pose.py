@@ -159,30 +159,12 @@ class TrackerPoser:
                else np.asarray(pose_cov, dtype=float))
         T_bp = transform_from_pose(expected)
         remeasures0 = getattr(self.tracker, "remeasures", 0)
-        found_at: dict[int, TargetMeasurement] = {}
-        for k in _nearest_first(base_belief, base_layout):
-            s = base_layout[k]
-            others = [base_belief.point(p) for j, p in enumerate(base_layout) if j != k]
-            others += [base_belief.composed(T_bp, cov).point(p) for p in platform_layout]
-            found = self._find(f"base monument {k + 1}", base_belief, s, np.array(others))
-            found_at[k] = found
-            if found.offset_mm > found.bound_mm:  # not where the alignment put it: the tracker was set up again
-                log.info("tracker.alignment_reset", target=found.name, offset_mm=found.offset_mm,
-                         bound_mm=found.bound_mm)
-                base_belief = BodyBelief.within(T0, cfg.moved_tolerance_mm, cfg.moved_tolerance_deg)
-                for j, t in found_at.items():
-                    base_belief = base_belief.condition(base_layout[j], t.point.xyz_mm, _sigma(t.point))
-            else:
-                base_belief = base_belief.condition(s, found.point.xyz_mm, _sigma(found.point))
-        base = [found_at[k] for k in range(len(base_layout))]
+        base, T_tb, rms_b, base_belief = self._base(base_layout, base_belief, T0, platform_layout, T_bp, cov)
         base_pts = np.array([t.point.xyz_mm for t in base])
-        R_tb, t_tb, rms_b = rigid_fit(base_layout, base_pts)
         if rms_b > cfg.registration_tol_mm:
             raise TrackerPoseError(
                 f"the base monuments do not match their surveyed layout: registration RMS {rms_b:.4f} mm > "
                 f"{cfg.registration_tol_mm} mm (a monument moved, a reflector in the wrong nest, or a survey wrong)")
-        T_tb = np.eye(4)
-        T_tb[:3, :3], T_tb[:3, 3] = R_tb, t_tb
         registered = BodyBelief(T_tb, base_belief.cov)
         platform_belief = registered.composed(T_bp, cov)
         platform: list[TargetMeasurement] = []
@@ -211,6 +193,49 @@ class TrackerPoser:
         return TrackerPoseMeasurement(pose=fit.pose, pose_fit=fit, platform=tuple(platform), base=tuple(base),
                                       alignment=T0, refined_alignment=T_tb, refined_cov=registered.cov,
                                       expected_pose=expected, extra=extra)
+
+    def measure_monuments(self, base_layout: np.ndarray, alignment: np.ndarray,
+                          alignment_tolerance: tuple[float, float], platform_layout: np.ndarray,
+                          platform_pose: np.ndarray, platform_cov: np.ndarray
+                          ) -> tuple[tuple[TargetMeasurement, ...], np.ndarray, float]:
+        """The base monuments alone, searched from the station's alignment within its tolerance as a run's first
+        pose does, the platform's targets (``platform_pose`` within ``platform_cov``) kept out of the searches
+        (``hilcal check``); the monuments, T_tracker<-base registered on them and the registration's RMS (mm)."""
+        T0 = as_transform(alignment)
+        base_belief = BodyBelief.within(T0, *alignment_tolerance)
+        base, T_tb, rms, _ = self._base(np.asarray(base_layout, dtype=float), base_belief, T0,
+                                        np.asarray(platform_layout, dtype=float),
+                                        transform_from_pose(np.asarray(platform_pose, dtype=float)),
+                                        np.asarray(platform_cov, dtype=float))
+        return base, T_tb, rms
+
+    def _base(self, base_layout: np.ndarray, base_belief: BodyBelief, T0: np.ndarray, platform_layout: np.ndarray,
+              T_bp: np.ndarray, cov: np.ndarray) -> tuple[tuple[TargetMeasurement, ...], np.ndarray, float,
+                                                          BodyBelief]:
+        """The monuments nearest first, each conditioning the base's frame (a monument beyond its bound: the tracker
+        was set up again, so the alignment is known only to the moved tolerance); their registration."""
+        cfg = self.cfg
+        found_at: dict[int, TargetMeasurement] = {}
+        for k in _nearest_first(base_belief, base_layout):
+            s = base_layout[k]
+            others = [base_belief.point(p) for j, p in enumerate(base_layout) if j != k]
+            others += [base_belief.composed(T_bp, cov).point(p) for p in platform_layout]
+            found = self._find(f"base monument {k + 1}", base_belief, s, np.array(others))
+            found_at[k] = found
+            if found.offset_mm > found.bound_mm:  # not where the alignment put it: the tracker was set up again
+                log.info("tracker.alignment_reset", target=found.name, offset_mm=found.offset_mm,
+                         bound_mm=found.bound_mm)
+                base_belief = BodyBelief.within(T0, cfg.moved_tolerance_mm, cfg.moved_tolerance_deg)
+                for j, t in found_at.items():
+                    base_belief = base_belief.condition(base_layout[j], t.point.xyz_mm, _sigma(t.point))
+            else:
+                base_belief = base_belief.condition(s, found.point.xyz_mm, _sigma(found.point))
+        base = [found_at[k] for k in range(len(base_layout))]
+        base_pts = np.array([t.point.xyz_mm for t in base])
+        R_tb, t_tb, rms_b = rigid_fit(base_layout, base_pts)
+        T_tb = np.eye(4)
+        T_tb[:3, :3], T_tb[:3, 3] = R_tb, t_tb
+        return tuple(base), T_tb, float(rms_b), base_belief
 
     def _find(self, name: str, belief: BodyBelief, body_point: np.ndarray, others: np.ndarray) -> TargetMeasurement:
         """Aim at the target's prediction with the search radius its bound asks for; widen after a miss."""

@@ -18,6 +18,7 @@ import typer
 from typer.core import TyperGroup
 
 from procedures.cli.analysis import design, diagnose, identifiability, identify, simulate
+from procedures.cli.check import check
 from procedures.cli.importing import import_command, robot_from_geometry_command
 from procedures.cli.operator import rollback, run, upload
 from procedures.cli.panel import panel
@@ -54,6 +55,7 @@ def main(ctx: typer.Context,
 
 app.command()(identify)
 app.command()(run)
+app.command()(check)
 app.command()(panel)
 app.command("sim")(sim_command)
 app.command()(history)

@@ -38,7 +38,7 @@ pytestmark = [pytest.mark.timeout(120),
               # a killed simulator's pty ends python-can's notifier thread of the link that was talking to it
               pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")]
 runner = CliRunner()
-STATION = Path(__file__).parents[1] / "drivers" / "acme_lx200_station.toml"
+STATION = Path(__file__).parents[1] / "drivers" / "controller" / "acme_lx200_station.toml"
 _n = itertools.count()
 
 
@@ -72,6 +72,27 @@ def test_acme_upload_and_rollback_round_trip_exactly(tmp_path: Path) -> None:
     finally:
         peer.close()
 
+
+
+def test_acme_is_checked_by_its_station_file_alone(tmp_path: Path) -> None:
+    """`hilcal check` on the device it was not written for: identity from 1018h, state, the leg offsets it holds and
+    its checksum object beside the one the offsets read should give; nothing written."""
+    channel = f"acme-check-{next(_n)}-{time.monotonic_ns()}"
+    (tmp_path / "acme_lx200.eds").write_text(ACME_EDS.read_text())
+    text = STATION.read_text().replace('channel = "acme-lx200"', f'channel = "{channel}"')
+    (tmp_path / "station.toml").write_text(text[:text.index("[cmm]")])  # the controller alone is checked
+    peer = AcmePeer(channel)
+    try:
+        result = runner.invoke(app, ["check", "--station", str(tmp_path / "station.toml"), "--json"])
+        assert result.exit_code == 0, result.output
+        (controller,) = json.loads(result.stdout)["devices"]
+        assert controller["identity"]["vendor_id"] == 0xAC and controller["identity"]["node_id"] == 5
+        parameters = controller["parameters"]
+        assert parameters["geometry"]["l0_mm"] == [v / 1000 for v in peer.zero_um]
+        assert parameters["checksum"] is not None and parameters["checksum"] == parameters["checksum_expected"]
+        assert peer.kept_um == peer.zero_um and controller["problems"] == []
+    finally:
+        peer.close()
 
 def _sdo_geometry(channel: str) -> np.ndarray:
     """The HX-6's 42 geometry values read by canopen's own SdoClient (REAL32 little-endian, as its EDS says)."""
