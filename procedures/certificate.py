@@ -13,6 +13,7 @@ to certificate.pdf (``procedures.pdf``), so ``hilcal certificate RUN_DIR`` regen
 from __future__ import annotations
 
 import datetime as dt
+import itertools
 import json
 import subprocess
 from dataclasses import dataclass
@@ -61,6 +62,8 @@ class SignoffContext:
     """Where the instrument is: the CMM's URL, the tracker's host:port."""
     tracker: Any = None
     """The station's laser tracker (``procedures.sections.tracker.TrackerSection``) when it measured with one."""
+    simulation: dict | None = None
+    """What a --sim run's simulator simulated (``sim_devices.sim_config.simulation_summary``): its clock's scale."""
 
 
 def certificate_number(run_id: str) -> str:
@@ -93,10 +96,13 @@ def software_info() -> dict[str, Any]:
 def _cmm_uncertainty(ctx: SignoffContext, robot: Robot) -> tuple[float | None, str | None]:
     """The CMM's stated expanded uncertainty U (k = 2) of a sphere-centre coordinate (mm) and where it comes from."""
     if ctx.settings.cmm.stated_uncertainty_mm is not None:
-        return ctx.settings.cmm.stated_uncertainty_mm, (ctx.settings.cmm_uncertainty_source
-                                                        or "station file [cmm] stated_uncertainty_mm")
+        if ctx.settings.cmm_uncertainty_source is not None:  # not from the station file: the simulator's
+            return ctx.settings.cmm.stated_uncertainty_mm, (
+                "as the simulated CMM states it: twice the standard deviation of one touch point's noise (a centre "
+                "fitted from several touches scatters less)")
+        return ctx.settings.cmm.stated_uncertainty_mm, "as the station file states it, from the CMM's own certificate"
     if robot.sphere_sigma_mm is not None:
-        return K_COVERAGE * robot.sphere_sigma_mm, "robot file [cmm] sphere_sigma_mm (standard), times 2"
+        return K_COVERAGE * robot.sphere_sigma_mm, "twice the sphere-centre standard deviation the robot file gives"
     return None, None
 
 
@@ -117,8 +123,8 @@ def _tracker(ctx: SignoffContext, robot: Robot, finished_at: str) -> tuple[dict[
             "point_uncertainty_mm": {"min": float(np.min(u)), "max": float(np.max(u))},
             "target_distance_mm": {"min": float(np.min(far)), "max": float(np.max(far))},
             "n_platform_targets": len(platform), "n_base_monuments": len(base),
-            "uncertainty_source": "the simulator's [tracker] MPE and station" if ctx.sim else (
-                "station file [tracker] mpe_constant_um, mpe_per_m_um and alignment (the distances)"),
+            "uncertainty_source": "the simulated tracker's MPE, at the distances of its station" if ctx.sim else (
+                "the MPE the station file states for the tracker, at the distances its alignment gives"),
             "air": t.environment.model_dump(),
             "calibration_due": None if due is None else due.isoformat(), "overdue": overdue,
             "warning": warning}, t.pose_covariance(robot)
@@ -139,12 +145,45 @@ def _instrument(ctx: SignoffContext, robot: Robot, finished_at: str) -> dict[str
             "calibration_due": None if due is None else due.isoformat(), "overdue": overdue, "warning": warning}
 
 
-def _environment(rows: list[dict]) -> dict[str, Any]:
+def _environment(rows: list[dict], simulation: dict | None = None) -> dict[str, Any]:
+    """The temperature readings during the measurements and the time they span (a simulated run's on the simulated
+    machine's clock, which runs its time scale faster than the wall clock: a 4-minute run is hours of its time)."""
     temps = [r["detail"]["temp_c"] for r in rows if isinstance(r.get("detail", {}).get("temp_c"), int | float)]
+    span_s = _measuring_span_s(rows)
+    scale = None if simulation is None else simulation.get("time_scale")
+    machine_s = None if span_s is None else span_s * (scale or 1.0)
+    clock = {"measurements_span_s": span_s, "machine_span_s": machine_s, "time_scale": scale}
     if not temps:
-        return {"temperature_c": None, "note": "not recorded (the station reports no temperature)"}
+        return {"temperature_c": None, **clock, "note": "not recorded (the station reports no temperature)"}
+    note = "the controller's leg temperature readings during the measurements"
+    if scale is not None and machine_s is not None:
+        note = (f"the simulated controller's temperature readings, over {_duration(machine_s)} of the simulated "
+                f"machine's time (its clock runs {scale:g} times faster than real time: {_duration(span_s)} here)")
     return {"temperature_c": {"mean": float(np.mean(temps)), "min": float(np.min(temps)), "max": float(np.max(temps)),
-                              "n": len(temps)}, "note": "the station's temperature readings during the measurements"}
+                              "n": len(temps)}, **clock, "note": note}
+
+
+def _measuring_span_s(rows: list[dict]) -> float | None:
+    """Wall-clock seconds from the first measurement to the last, summed over the sessions of a resumed run (each
+    session's engine clock starts at zero: a reading earlier than the one before starts a new session)."""
+    times = [float(r["time_s"]) for r in sorted(rows, key=lambda r: r.get("seq", 0))
+             if isinstance(r.get("time_s"), int | float)]
+    if len(times) < 2:
+        return None
+    span, start = 0.0, times[0]
+    for previous, now in itertools.pairwise(times):
+        if now < previous:
+            span, start = span + previous - start, now
+    return span + times[-1] - start
+
+
+def _duration(seconds: float | None) -> str:
+    """12 s, 4.2 min, 6.4 h."""
+    if seconds is None:
+        return "–"
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.1f} min" if seconds < 7200 else f"{seconds / 3600:.1f} h"
 
 
 def _arrays(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
@@ -221,7 +260,7 @@ def signoff_section(ctx: SignoffContext, robot: Robot, plan: Any, result: Any, p
                     "serial": ctx.settings.machine_serial},
         "software": software_info(),
         "instrument": instrument,
-        "environment": _environment([*pre_rows, *result.after_rows, *result.acceptance_rows]),
+        "environment": _environment([*pre_rows, *result.after_rows, *result.acceptance_rows], ctx.simulation),
         "method": {"model": None if ident is None else ident.model, "estimator": result.chosen,
                    "effects": [] if result.physics is None or result.block is None else [
                        c.title for c in result.physics.loadable.corrected],
@@ -291,7 +330,7 @@ def verdict_line(report: dict[str, Any]) -> str:
     """The verdict in one line, with the limits that decided it."""
     cert = report.get("certificate") or {}
     failed = [c for c in cert.get("limits", []) if c["decision"] != "pass"]
-    why = "; ".join(f"{c['key']} {c['decision']}" + ("" if c["value"] is None else
+    why = "; ".join(f"{c.get('label') or c['key']} {c['decision']}" + ("" if c["value"] is None else
                     f" ({c['where']}: {c['value']:.4g} ± {c['U']:.2g} {c['unit']} against {c['limit']:g})")
                     for c in failed)
     return f"acceptance verdict: {cert.get('verdict')}" + (f": {why}" if why else "")

@@ -21,6 +21,9 @@ from procedures.adaptive import PROGRESS_LABEL, progress_line
 from procedures.messages import Checkpoint
 
 Observer = Callable[[str, dict], None]
+PHASES = {"measure": "measure", "verify": "verify before the upload", "verify_after": "verify after the upload",
+          "acceptance": "ISO 9283 test"}
+"""The journal's phases as the bar names them."""
 
 
 @contextlib.contextmanager
@@ -31,7 +34,8 @@ def terminal_progress(total: int, done: int) -> Iterator[tuple[Callable[[dict], 
         task = progress.add_task("measuring poses", total=total, completed=done)
 
         def advance(row: dict) -> None:
-            progress.update(task, advance=1, description=f"{row['phase']} pose {row['index'] + 1}")
+            progress.update(task, advance=1, description=f"{PHASES.get(row['phase'], row['phase'])} pose "
+                            f"{row['index'] + 1}")
 
         yield advance, progress, task
 

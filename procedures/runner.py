@@ -18,6 +18,7 @@ import datetime as dt
 import json
 import logging
 import shlex
+import shutil
 import uuid
 from collections.abc import Callable
 from contextlib import AbstractContextManager
@@ -59,6 +60,7 @@ from procedures.engine import Engine, RunInterrupted
 from procedures.journal import Journal
 from procedures.link_guard import links_summary
 from procedures.plan import CalibrationPlan, PlanError, estimate_plan, load_plan, make_plan, save_plan
+from procedures.records.run_records import record_outcome, record_start, records_target, stage_parameters
 from procedures.run_progress import adaptive_lines, bar_aside, combine_observers, terminal_progress
 from procedures.sections.tracker import instrument_options
 from procedures.timing import TimingSection
@@ -72,7 +74,16 @@ class SimulatorStartError(RuntimeError):
 
 SimStation = Callable[[str | None, Path, str | None, str | None], AbstractContextManager[Any]]
 """(sim_config, out_dir, robot_path, instrument) -> context manager that runs the simulated devices (the instrument:
-"cmm", "tracker", or None for the simulator configuration's) and yields their station."""
+"cmm", "tracker", or None for the simulator configuration's) and yields a ``SimulatedStation`` (or a bare station)."""
+
+
+@dataclass(frozen=True)
+class SimulatedStation:
+    """The station wired to the simulated devices and what they simulate (``sim_devices.sim_config``'s summary: the
+    robot, its errors, the effects, the instrument, the clock; its ``lines`` in words)."""
+
+    station: Any
+    simulation: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -82,6 +93,8 @@ class RunExit:
     message: str
     report_path: Path | None = None
     certificate_path: Path | None = None
+    started: bool = True
+    """False: the run never started (bad input, a device that did not answer): nothing of it is kept."""
 
 
 def new_run_id() -> str:
@@ -120,13 +133,15 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
                      out_dir: Path, run_id: str, confirm: Callable[[str], bool] | None,
                      started_at: str, timing: TimingSection | None = None,
                      observer: Callable[[str, dict], None] | None = None, recorder: Any = None,
-                     signoff: Any = None, on_prompt: Callable[[Any], None] | None = None) -> RunExit:
+                     signoff: Any = None, on_prompt: Callable[[Any], None] | None = None,
+                     simulation: dict | None = None) -> RunExit:
     """Run (or continue) the procedure on open devices and write every output; never raises on device faults.
 
     `timing` (the station's) gives the report its estimated against actual machine time; `observer` receives
     the engine's events (the operator panel); `recorder` (``procedures.records.sync.RunRecorder``) gives the
     report the drift since the machine's earlier calibrations, and the journal stages the run's geometry;
-    `signoff` (``procedures.certificate.SignoffContext``) makes a complete run's certificate and verdict.
+    `signoff` (``procedures.certificate.SignoffContext``) makes a complete run's certificate and verdict;
+    `simulation` (a --sim run's) says in the report what the simulator simulated.
     """
     done = len(journal.measurements((*PRE_PHASES, AFTER_PHASE, ACCEPTANCE_PHASE)))
     if done:
@@ -148,8 +163,8 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
         journal.set_status("interrupted")
         if options.adaptive is not None:
             write_executed_plan(journal, out_dir, plan, run_id)
-        return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} stopped: {e}. The journal is kept; continue with: "
-                       f"{resume_command(run_id, out_dir)}")
+        return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} stopped: {stop_reason(e)}. The journal is kept; "
+                       f"continue with: {resume_command(run_id, out_dir)}")
     pre_rows = journal.measurements(PRE_PHASES)
     if result.recording is not None:  # a run stopped as not identifiable may have too few rows for a recording
         write_recording(out_dir / "recording.csv", result.recording)
@@ -158,7 +173,7 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
     if options.adaptive is not None:
         plan = write_executed_plan(journal, out_dir, plan, run_id) or plan
     machine_time = None if timing is None else machine_time_report(journal, plan, robot, timing, route)
-    drift = _stage_parameters(journal, run_id, result, robot, started_at, recorder)
+    drift = stage_parameters(journal, run_id, result, robot, started_at, recorder)
     if options.adaptive is not None and result.adaptive is not None:
         result.adaptive = adaptive_summary(options.adaptive, result, reference, plan)
     signed = None
@@ -166,7 +181,7 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
         signed = signoff_section(signoff, robot, plan, result, pre_rows, run_id,
                                  dt.datetime.now(dt.UTC).isoformat())
     report_path = _write_report(out_dir, run_id, plan, robot, options, result, started_at, journal, machine_time,
-                                drift, signed)
+                                drift, signed, simulation)
     journal.set_status(result.status)
     if result.status == "not identifiable":
         return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} {result.status}: {'; '.join(result.problems)}. "
@@ -183,6 +198,14 @@ def run_with_devices(devices: Any, journal: Journal, plan: CalibrationPlan, robo
     return RunExit(EXIT_OK if accepted else EXIT_NOT_ACCEPTED, run_id,
                    "\n".join([f"run {run_id} complete" + ("" if accepted else ", NOT ACCEPTED"), *lines]),
                    report_path, certificate)
+
+
+def stop_reason(e: RunInterrupted) -> str:
+    """Why a run stopped, in words (the engine says "operator declined: QUESTION" for a no)."""
+    text = str(e)
+    if text.startswith("operator declined: "):
+        return f"the operator answered no to the question '{text.removeprefix('operator declined: ')}'"
+    return text or "no reason given"
 
 
 def resume_command(run_id: str, out_dir: Path) -> str:
@@ -206,7 +229,7 @@ def machine_time_report(journal: Journal, plan: CalibrationPlan, robot: Robot, t
 
 def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robot, options: RunOptions,
                   result: ProcedureResult, started_at: str, journal: Journal, machine_time: dict | None = None,
-                  drift: dict | None = None, signoff: dict | None = None) -> Path:
+                  drift: dict | None = None, signoff: dict | None = None, simulation: dict | None = None) -> Path:
     from hilcal.reports.run import RunReport, write_run_report
 
     verify_rows = journal.measurements(("verify",))
@@ -249,6 +272,7 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
         drift=drift,
         signoff=signoff,
         adaptive=result.adaptive if isinstance(result.adaptive, dict) and "summary" in result.adaptive else None,
+        simulation=simulation,
         warnings=(*result.acquisition, *result.out_of_reach),
     )
     json_path, _ = write_run_report(out_dir, report)
@@ -261,23 +285,33 @@ def _write_report(out_dir: Path, run_id: str, plan: CalibrationPlan, robot: Robo
     return json_path
 
 
-def plan_for_run(journal: Journal, plan: CalibrationPlan | None, run_id: str | None, options: dict
-                 ) -> tuple[str, CalibrationPlan, dict]:
-    """Start a new run in the journal, or check and reload the one being resumed."""
+def _run_info(journal: Journal) -> dict | None:
     try:
-        info = journal.run_info()
+        return journal.run_info()
     except Exception:
-        info = None
+        return None
+
+
+def check_new_run(journal: Journal) -> None:
+    """ValueError if the run folder already holds a run (a new run needs a folder of its own)."""
+    info = _run_info(journal)
+    if info is not None:
+        raise ValueError(f"{journal.path.parent} already holds run {info['run_id']} ({info['status']}): "
+                         f"resume it with --resume {info['run_id']} or choose another --out folder")
+
+
+def plan_for_run(journal: Journal, plan: CalibrationPlan | None, run_id: str | None, options: dict,
+                 new_id: str | None = None) -> tuple[str, CalibrationPlan, dict]:
+    """Start a new run in the journal (as ``new_id`` if given), or check and reload the one being resumed."""
+    info = _run_info(journal)
     if run_id is not None:
         if info is None or info["run_id"] != run_id:
             found = "no run" if info is None else f"run {info['run_id']}"
             raise ValueError(f"cannot resume {run_id}: {journal.path} holds {found}")
         return run_id, CalibrationPlan.model_validate_json(info["plan_json"]), info["options"]
-    if info is not None:
-        raise ValueError(f"{journal.path.parent} already holds run {info['run_id']} ({info['status']}): "
-                         f"resume it with --resume {info['run_id']} or choose another --out folder")
+    check_new_run(journal)
     assert plan is not None
-    new_id = new_run_id()
+    new_id = new_id or new_run_id()
     journal.start(new_id, plan.sha256(), json.dumps(plan.model_dump()), options)
     save_plan(plan, journal.path.parent / ("reference_plan.json" if options.get("adaptive") else "plan.json"))
     return new_id, plan, options
@@ -320,6 +354,12 @@ class RunRequest:
     """An adaptive run's instead: called with its range before motion (``procedures.adaptive.time_range_json``)."""
     on_prompt: Callable[[Any], None] | None = None
     """Called with a procedure prompt before it is asked at the terminal (prints the upload approval's detail)."""
+    run_id: str | None = None
+    """The id of a new run (None: made when it starts); the command line's default run folder is named after it."""
+    timing_source: str | None = None
+    """Where the run's timing comes from, in words (printed and in the report of a --sim run)."""
+    on_simulation: Callable[[dict], None] | None = None
+    """Called with what the simulator simulates once it runs (``SimulatedStation.simulation``, timing added)."""
 
 
 def default_records_path() -> str:
@@ -330,72 +370,106 @@ def default_records_path() -> str:
 
 
 def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: Any = None) -> RunExit:
-    """Start or resume a run in req.out_dir; never raises for bad input or device trouble (see RunExit.code)."""
+    """Start or resume a run in req.out_dir; never raises for bad input or device trouble (see RunExit.code).
+
+    A new run that does not start (bad input, a device that does not answer) leaves nothing: what it wrote in its
+    folder is removed again (the folder too if it made it), so no journal offers it to ``--resume``.
+    """
     from procedures.records import RecordsError, RecordsUnavailable
     from procedures.records.sync import RunRecorder
-    from procedures.station import (
-        DeviceOpenError,
-        StationConfigError,
-        load_station,
-        open_devices,
-    )
 
-    recorder = RunRecorder(_records_target(req))
+    recorder = RunRecorder(records_target(req))
     try:
         recorder.open()
     except RecordsError as e:
-        return RunExit(EXIT_BAD_INPUT, "", f"records: {e}")
+        return RunExit(EXIT_BAD_INPUT, "", f"records: {e}", started=False)
     except RecordsUnavailable as e:
         return RunExit(EXIT_INTERRUPTED, "", f"{e}. The run did not start and nothing moved: start the database, or "
-                       "give --records FILE to record into a local SQLite file")
+                       "give --records FILE to record into a local SQLite file", started=False)
+    before = set(req.out_dir.iterdir()) if req.out_dir.is_dir() else None
     req.out_dir.mkdir(parents=True, exist_ok=True)
+    result = _execute(req, confirm, panel, recorder)
+    if not result.started and req.resume is None:
+        _remove_new(req.out_dir, before)
+    return result
+
+
+def _remove_new(out_dir: Path, before: set[Path] | None) -> None:
+    """Remove what a run that never started wrote: the folder if it did not exist, else the entries it added."""
+    if before is None:
+        shutil.rmtree(out_dir, ignore_errors=True)
+        return
+    for entry in set(out_dir.iterdir()) - before:
+        if entry.is_dir():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
+
+
+def _execute(req: RunRequest, confirm: Callable[[str], bool] | None, panel: Any, recorder: Any) -> RunExit:
+    from procedures.station import DeviceOpenError, StationConfigError, load_station, open_devices
+
     configure_logs(req.out_dir)
     started_at = dt.datetime.now(dt.UTC).isoformat()
     with Journal(req.out_dir / "journal.sqlite") as journal, contextlib.ExitStack() as stack:
         stack.callback(recorder.close)
+        run_id, simulation = req.resume, None
         try:
             if req.resume is None:
+                check_new_run(journal)
                 robot = load_robot(req.robot_path)
                 timing = _station_timing(req)
                 plan = (load_plan(req.plan_path, robot) if req.plan_path else
                         make_plan(robot, req.seed, timing=timing.timing()))
                 test = make_acceptance(robot, plan, req.cycles, req.acceptance) if req.acceptance else None
                 options = {"sim": req.sim, "estimator": req.estimator, "force": req.force,
-                           "timing": timing.model_dump(), "operator": req.operator,
-                           "acceptance": None if test is None else test.model_dump(),
+                           "timing": timing.model_dump(), "timing_source": req.timing_source,
+                           "operator": req.operator, "acceptance": None if test is None else test.model_dump(),
                            "robot_path": None if req.robot_path is None else str(req.robot_path),
                            "station_path": None if req.station_path is None else str(req.station_path),
                            "sim_config": None if req.sim_config is None else str(req.sim_config),
                            "physics": req.physics, "instrument": req.instrument,
                            "adaptive": None if req.adaptive is None else req.adaptive.model_dump()}
-                adaptive = _adaptive_for(plan, robot, timing, options, test)
-                run_id, plan, options = plan_for_run(journal, plan, None, options)
-                if test is not None:
-                    save_acceptance(test, req.out_dir / "acceptance.json")
             else:
                 run_id, plan, options = plan_for_run(journal, None, req.resume, {})
                 robot = load_robot(options["robot_path"])
                 timing = TimingSection.model_validate(options.get("timing", {}))
                 test = AcceptanceTest.model_validate(options["acceptance"]) if options.get("acceptance") else None
-                adaptive = _adaptive_for(plan, robot, timing, options, test)
+            adaptive = _adaptive_for(plan, robot, timing, options, test)
             shown = _announce(req, journal, plan, robot, timing, test, adaptive)
             if options["sim"]:
                 if req.sim_station is None:
                     raise ValueError("this run uses the simulated devices (--sim), but no simulator was given")
                 station = stack.enter_context(req.sim_station(options["sim_config"], req.out_dir,
                                                               options["robot_path"], options.get("instrument")))
+                if isinstance(station, SimulatedStation):
+                    station, simulation = station.station, station.simulation
+                if simulation is not None:
+                    simulation = {**simulation, "timing": options.get("timing_source")}
+                    if req.on_simulation is not None:
+                        req.on_simulation(simulation)
             else:
                 station = load_station(req.station_path or options["station_path"])
             settings = signoff_settings(options, station)
         except (RobotFileError, PlanError, StationConfigError, ValueError) as e:
-            return RunExit(EXIT_BAD_INPUT, "", str(e))
+            return RunExit(EXIT_BAD_INPUT, run_id or "", str(e), started=run_id is not None)
         except SimulatorStartError as e:
-            return RunExit(EXIT_INTERRUPTED, "", f"simulated devices did not start: {e}")
+            return RunExit(EXIT_INTERRUPTED, run_id or "", f"the simulated devices did not start: {e}",
+                           started=run_id is not None)
         try:
             devices = stack.enter_context(open_devices(station, run_folder=req.out_dir))
         except DeviceOpenError as e:
-            return RunExit(EXIT_INTERRUPTED, run_id, f"cannot open the station's devices: {e}; the journal is kept, "
-                           f"continue with: {resume_command(run_id, req.out_dir)}")
+            if run_id is None:
+                return RunExit(EXIT_INTERRUPTED, "", f"the run did not start: cannot connect to {e}. Nothing moved "
+                               "and no run was recorded: check the device and its setting in the station file, then "
+                               "start the run again", started=False)
+            return RunExit(EXIT_INTERRUPTED, run_id, f"run {run_id} cannot continue: cannot connect to {e}. Nothing "
+                           f"moved; its journal is kept: once the device answers, continue with: "
+                           f"{resume_command(run_id, req.out_dir)}")
+        if run_id is None:
+            run_id, plan, options = plan_for_run(journal, plan, None, options, new_id=req.run_id)
+            if test is not None:
+                save_acceptance(test, req.out_dir / "acceptance.json")
         operator = req.operator or options.get("operator") or settings.operator
         if panel is not None:
             from procedures.panel.control import NotStarted
@@ -422,13 +496,13 @@ def execute_run(req: RunRequest, confirm: Callable[[str], bool] | None, panel: A
         run_options = RunOptions(estimator=options["estimator"], force=bool(options["force"]), acceptance=test,
                                  physics=bool(options.get("physics", True)), adaptive=adaptive,
                                  **instrument_options(station, robot))
-        _record_start(recorder, journal, req, run_id, started_at, robot, plan, operator, run_options.estimator)
+        record_start(recorder, journal, req, run_id, started_at, robot, plan, operator, run_options.estimator)
         signoff = SignoffContext(operator, settings, test, bool(options["sim"]), options["robot_path"],
-                                 station.instrument_address(), station.measuring_tracker())
+                                 station.instrument_address(), station.measuring_tracker(), simulation)
         result = run_with_devices(devices, journal, plan, robot, run_options, req.out_dir, run_id, confirm,
                                   started_at, timing, None if panel is None else panel.observer, recorder, signoff,
-                                  None if panel is not None else req.on_prompt)
-        _record_outcome(recorder, journal, run_id, operator, result)
+                                  None if panel is not None else req.on_prompt, simulation)
+        record_outcome(recorder, journal, run_id, operator, result)
         note = record_signoff(recorder, journal, result.report_path, result.certificate_path)
         if note:
             result = dataclasses.replace(result, message=f"{result.message}\n{note}")
@@ -472,78 +546,3 @@ def _station_timing(req: RunRequest) -> TimingSection:
     if req.sim:
         return req.timing or TimingSection()
     return load_station(req.station_path).timing if req.station_path else TimingSection()
-
-
-def _records_target(req: RunRequest) -> str | Path | None:
-    """--records, else the station file's records (a real run), else $HILCAL_RECORDS or the default file."""
-    from procedures.station import StationConfigError, load_station
-
-    if req.records_path is not None:
-        return req.records_path
-    if req.station_path is not None and not req.sim:
-        try:
-            return load_station(req.station_path).records_target()
-        except StationConfigError:
-            return None  # the run reports the station file's problems itself
-    return None
-
-
-def _station_identity(req: RunRequest, options: dict) -> tuple[str | None, str | None]:
-    """The station's name and the machine's serial from the station file, if the run has one (a --sim run's
-    station file may hold only these, its [timing] and its sign-off settings: ``procedures.signoff``)."""
-    from procedures.signoff import SignoffFileError, load_signoff
-
-    path = req.station_path or options.get("station_path")
-    if path is None:
-        return None, None
-    try:
-        settings = load_signoff(path)
-    except SignoffFileError:
-        return None, None
-    return settings.name, settings.machine_serial
-
-
-def _record_start(recorder: Any, journal: Journal, req: RunRequest, run_id: str, started_at: str, robot: Robot,
-                  plan: CalibrationPlan, operator: str | None, estimator: str) -> None:
-    """Record the run at its start (a resumed run keeps what its first start recorded)."""
-    from procedures.records.sync import run_fields, staged
-
-    run = staged(journal)["run"]
-    if not run:
-        station, serial = _station_identity(req, journal.run_info()["options"])
-        run = run_fields(run_id, started_at, robot.name, plan.sha256(), operator, req.out_dir, estimator, serial,
-                         station)
-    recorder.machine = run["machine"]
-    recorder.write(journal, run=run)
-
-
-def _stage_parameters(journal: Journal, run_id: str, result: ProcedureResult, robot: Robot, started_at: str,
-                      recorder: Any) -> dict | None:
-    """Stage the machine's estimated geometry in the journal; the drift since its earlier calibrations."""
-    from procedures.records.sync import calibration_parameters, stage, staged
-
-    parameters = calibration_parameters(result, robot)
-    if parameters is None:
-        return None
-    stage(journal, parameters=parameters)
-    if recorder is None:
-        return None
-    return recorder.drift_since(run_id, staged(journal)["run"].get("started_at", started_at), parameters)
-
-
-def _record_outcome(recorder: Any, journal: Journal, run_id: str, operator: str | None, result: RunExit) -> None:
-    status = journal.run_info()["status"]
-    fields: dict[str, Any] = {"status": status, "finished_at": dt.datetime.now(dt.UTC).isoformat()}
-    if result.report_path is not None:
-        report = json.loads(result.report_path.read_text())
-        fields["verify_before"] = report["verification"]["before"]
-        fields["verify_after"] = report["verification"]["after"]
-    from procedures.records.sync import stage
-
-    upload = journal.step("upload") or {}
-    if upload.get("record"):
-        stage(journal, upload={"upload_id": f"{run_id}/upload", "record": upload["record"], "operator": operator})
-    saved = None  # the save is a step of its own, with its own record
-    if upload.get("save_record"):
-        saved = {"upload_id": f"{run_id}/save", "record": upload["save_record"], "operator": operator}
-    recorder.write(journal, run=fields, upload=saved)

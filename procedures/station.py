@@ -428,7 +428,7 @@ def open_devices(station: StationConfig, *, check: bool = True, run_folder: str 
     try:
         robot = load_robot(station.robot)
     except RobotFileError as err:
-        raise DeviceOpenError(f"robot: {err}") from None
+        raise DeviceOpenError(f"the robot file: {err}") from None
     with ExitStack() as stack:
         controller, params = open_controller(station, robot, stack, check)
         tracker, cmm, alignment = None, None, None
@@ -454,13 +454,28 @@ def open_devices(station: StationConfig, *, check: bool = True, run_folder: str 
                 instrument = CmmPoseInstrument(cmm, station.cmm.url, alignment, (station.cmm.alignment_tolerance_mm,
                                                                                   station.cmm.alignment_tolerance_deg))
         except Exception as err:
-            what = "laser tracker" if t is not None else "CMM"
-            raise DeviceOpenError(f"{what} ({station.instrument_address()}): {err}") from err
+            what = "the laser tracker" if t is not None else "the CMM"
+            raise DeviceOpenError(f"{what} at {station.instrument_address()}: {_reason(err)}") from err
         devices = Devices(station, robot, controller, params, cmm, alignment, instrument, tracker, stack.pop_all())
     log.info("station_devices_opened", robot=robot.name, can=station.can.bus_config().get("channel"),
              controller=station.controller.kind,
              modbus=params.endpoint, instrument=station.instrument.kind, address=station.instrument_address())
     return devices
+
+
+def can_words(bus: dict[str, Any]) -> str:
+    """A station's CAN interface in words: "CAN interface socketcan, channel can0, 500000 bit/s"."""
+    said = f"CAN interface {bus.get('interface')}, channel {bus.get('channel')}"
+    return said + (f", {bus['bitrate']} bit/s" if bus.get("bitrate") else "")
+
+
+def _reason(err: BaseException) -> str:
+    """What went wrong in words: the error's message, or where a driver restates the settings as a Python dict (the
+    CAN driver does), the cause it wraps (the operating system's or the bus library's words)."""
+    text, cause = str(err), err.__cause__
+    if "{'" in text and cause is not None and str(cause):
+        text = str(cause)
+    return text or type(err).__name__
 
 
 def open_controller(station: StationConfig, robot: Robot, stack: ExitStack, check: bool
@@ -478,8 +493,9 @@ def open_controller(station: StationConfig, robot: Robot, stack: ExitStack, chec
                 controller.wait_for_heartbeat(motion.connect_timeout_s)
                 params.read_identity()
         except Exception as err:
-            raise DeviceOpenError(f"controller (CANopen {station.controller.eds_path().name}, node(s) "
-                                  f"{station.controller.nodes()}, CAN {station.can.bus_config()}): {err}") from err
+            nodes = ", ".join(str(n) for n in station.controller.nodes())
+            raise DeviceOpenError(f"the CANopen controller ({station.controller.eds_path().name}, node {nodes}) on "
+                                  f"{can_words(station.can.bus_config())}: {_reason(err)}") from err
         return controller, params
     try:
         controller = ControllerCan(station.can.bus_config(), robot, heartbeat_timeout_s=motion.heartbeat_timeout_s,
@@ -489,7 +505,7 @@ def open_controller(station: StationConfig, robot: Robot, stack: ExitStack, chec
         if check:
             controller.wait_for_heartbeat(motion.connect_timeout_s)
     except Exception as err:
-        raise DeviceOpenError(f"controller (CAN {station.can.bus_config()}): {err}") from err
+        raise DeviceOpenError(f"the controller's {can_words(station.can.bus_config())}: {_reason(err)}") from err
     mb = station.modbus
     assert mb is not None  # the station's validator
     try:
@@ -498,5 +514,6 @@ def open_controller(station: StationConfig, robot: Robot, stack: ExitStack, chec
         if check:
             params.read_identity()
     except Exception as err:
-        raise DeviceOpenError(f"controller parameters (Modbus {mb.host or mb.serial_port}): {err}") from err
+        where = f"Modbus TCP {mb.host}:{mb.port}" if mb.host else f"Modbus RTU on {mb.serial_port}"
+        raise DeviceOpenError(f"the controller's parameter interface, {where}: {_reason(err)}") from err
     return controller, params

@@ -27,7 +27,13 @@ import numpy as np
 import structlog
 
 from hilcal.robot import RobotFileError
-from sim_devices.sim_config import CONTROLLER_PROTOCOLS, SimConfig, SimConfigError, load_sim_config
+from sim_devices.sim_config import (
+    CONTROLLER_PROTOCOLS,
+    SimConfig,
+    SimConfigError,
+    load_sim_config,
+    simulation_summary,
+)
 from sim_devices.sim_state import SimStateError
 from sim_devices.simulator import SimHandle, start_sim
 
@@ -44,10 +50,9 @@ class SimStartError(RuntimeError):
 
 
 def _describe(channels: dict[str, Any], handle: SimHandle) -> str:
-    rig = handle.config.rig
     lines = [
-        f"hilcal simulator: robot {channels['robot']}, errors {rig.errors}, seed {rig.seed}, "
-        f"controller protocol {channels['controller']['protocol']}",
+        *channels["simulation"]["lines"],
+        f"hilcal simulator: controller protocol {channels['controller']['protocol']}",
         f"  CAN (SLCAN)   {channels['can']['channel']}   "
         f"(can.Bus(interface='slcan', channel='{channels['can']['channel']}', sleep_after_open=0))",
     ]
@@ -105,7 +110,7 @@ def run_sim_process(config: SimConfig, as_json: bool, *, stdin_watch: bool = Fal
             print(f"error: the simulator did not start: {err}", file=sys.stderr, flush=True)
             return 2
         with handle:
-            channels = handle.channels()
+            channels = {**handle.channels(), "simulation": simulation_summary(handle.config, handle.robot)}
             print(json.dumps(channels) if as_json else _describe(channels, handle), flush=True)
             watch_fd = sys.stdin.fileno() if stdin_watch else None
             while not stop.is_set():
@@ -131,7 +136,7 @@ def _configure_logging(verbose: bool) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m sim_devices.launcher [--config FILE] [--json] [--state-file PATH] [--seed N]
-    [--instrument cmm|tracker] [--controller hilcal|canopen|canopen-cia402]``."""
+    [--instrument cmm|tracker] [--controller hilcal|canopen|canopen-cia402] [--robot FILE]``."""
     parser = argparse.ArgumentParser(prog="python -m sim_devices.launcher", description=__doc__.split("\n")[0])
     parser.add_argument("--config", type=Path, help="simulator TOML file (default: built-in settings)")
     parser.add_argument("--json", action="store_true", help="print the channels as one JSON line")
@@ -141,13 +146,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                         "file; default: cmm)")
     parser.add_argument("--controller", choices=CONTROLLER_PROTOCOLS, help="the controller's protocol (overrides "
                         "the file; default: hilcal)")
+    parser.add_argument("--robot", type=Path, help="simulate this robot file (overrides the file's robot)")
     parser.add_argument("--stdin-watch", action="store_true", help="stop when stdin closes (spawning process gone)")
     parser.add_argument("--verbose", "-v", action="store_true", help="structured logs on stderr")
     args = parser.parse_args(argv)
     _configure_logging(args.verbose)
     try:
         config = load_sim_config(args.config, state_file=args.state_file, seed=args.seed,
-                                 instrument=args.instrument, controller=args.controller)
+                                 instrument=args.instrument, controller=args.controller, robot=args.robot)
     except SimConfigError as err:
         print(f"error: {err}", file=sys.stderr, flush=True)
         return 2

@@ -3,13 +3,14 @@ and validated.
 
 Example configuration (every key optional; relative paths are relative to the file)::
 
-    robot = "robots/plant3.toml"    # default: the built-in paper Table 1 robot
+    robot = "robots/plant3.toml"    # default: `hilcal run --robot FILE`'s, else the built-in paper Table 1 robot
     state_file = "sim_state.json"   # default: no persistence
     instrument = "cmm"              # or "tracker" (hilcal sim --instrument tracker): the laser tracker instead
 
     [rig]                           # SimulatedRig truth: seed and errors, plus any RigConfig field
     seed = 0
     errors = "table2"               # table2..table5, zero, or an errors TOML file
+    errors_scale = 1.0              # multiplies the errors (the paper's tables are for its 3.7 m machine)
     leg_resolution_mm = 0.001
     [rig.effects.thermal_expansion]
     enabled = true
@@ -70,6 +71,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import structlog
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -100,6 +102,8 @@ class SimRigSettings(BaseModel):
 
     seed: int = 0
     errors: str = Field(default="table2", description=f"one of {', '.join(BUILTIN_ERROR_SETS)} or an errors TOML file")
+    errors_scale: float = Field(default=1.0, gt=0, le=100.0, description="multiplies every geometric error (the "
+                                "paper's tables are a 3.7 m machine's: 0.03 brings them to a 100 mm hexapod's size)")
 
     @model_validator(mode="after")
     def _valid_rig_fields(self) -> SimRigSettings:
@@ -114,6 +118,8 @@ class SimRigSettings(BaseModel):
     def rig_config(self, robot: Robot) -> RigConfig:
         """The RigConfig with the errors loaded (ValueError naming the errors source if they cannot be)."""
         errors = load_errors(self.errors, robot)
+        if self.errors_scale != 1.0:
+            errors = GeometryErrors.from_vector(errors.to_vector() * self.errors_scale)
         return RigConfig.model_validate({**(self.model_extra or {}), "seed": self.seed, "errors": errors})
 
 
@@ -228,10 +234,10 @@ def _resolve(base: Path, value: Any) -> Any:
 
 def load_sim_config(
     path: str | Path | None = None, *, state_file: str | Path | None = None, seed: int | None = None,
-    instrument: str | None = None, controller: str | None = None,
+    instrument: str | None = None, controller: str | None = None, robot: str | Path | None = None,
 ) -> SimConfig:
     """The configuration from a TOML file (None: defaults), with ``--state-file``/``--seed``/``--instrument``/
-    ``--controller`` (the controller's protocol) overrides.
+    ``--controller`` (the controller's protocol) and ``--robot`` (the robot file to simulate) overrides.
 
     Relative ``robot``, ``state_file`` and errors-file paths are relative to the file. SimConfigError otherwise.
     """
@@ -254,6 +260,8 @@ def load_sim_config(
             data["rig"] = {**rig, "errors": _resolve(base, rig["errors"])}
     if state_file is not None:
         data["state_file"] = str(state_file)
+    if robot is not None:
+        data["robot"] = str(robot)
     if seed is not None:
         rig = data.get("rig")
         data["rig"] = {**(rig if isinstance(rig, dict) else {}), "seed": seed}
@@ -274,3 +282,64 @@ def sim_config_toml(data: dict[str, Any], header: str = "") -> str:
     an optional comment header; tables, arrays of tables and arrays of numbers."""
     comment = "".join(f"# {line}\n" if line else "#\n" for line in header.splitlines())
     return comment + "\n".join(toml_lines(data, "")).lstrip("\n") + "\n"
+
+
+def simulation_summary(config: SimConfig, robot: Robot) -> dict[str, Any]:
+    """What a simulator with this configuration simulates, in figures and in sentences (``lines``): the robot, its
+    geometric errors and their size, the effects beyond the geometry, the instrument and its noise, the clock."""
+    rig = config.rig.rig_config(robot)
+    vector = rig.errors.to_vector().reshape(6, 7)
+    joints_mm = float(np.max(np.abs(vector[:, :6]))) if vector.size else 0.0
+    lengths_mm = float(np.max(np.abs(vector[:, 6])))
+    source = config.rig.errors
+    scale = config.rig.errors_scale
+    scaled = "" if scale == 1.0 else f", times {scale:g}"
+    if source == "zero":
+        errors = "none: the machine is built exactly as its robot file says"
+    elif source in BUILTIN_ERROR_SETS:
+        errors = (f"the paper's Table {source.removeprefix('table')} (Yu 2022, in mm for its 3.7 m robot)"
+                  + (scaled or ", not scaled to this robot") + ", each leg's length error taken along this robot's leg")
+    else:
+        errors = f"the errors file {source}{scaled}"
+    if source != "zero":
+        errors += f": joint errors up to {joints_mm:.3g} mm, leg length errors up to {lengths_mm:.3g} mm"
+    effects = [{"name": name, "title": _title(getattr(rig.effects, name))} for name in rig.effects.active()]
+    if config.instrument == "tracker":
+        t = config.tracker
+        instrument = (f"the simulated laser tracker (Leica emScon over TCP), MPE ±({t.mpe_constant_um:g} µm + "
+                      f"{t.mpe_per_m_um:g} µm/m), its station set up {t.alignment_error_mm:g} mm and "
+                      f"{t.alignment_error_deg:g}° away from where it is published")
+    else:
+        c = config.cmm
+        stated = c.stated_uncertainty()
+        instrument = (f"the simulated CMM (I++ DME), noise {c.noise_sigma_mm:g} mm per touch-point coordinate"
+                      + ("" if stated is None else f", stated uncertainty U = {stated:g} mm (k = 2)")
+                      + f", set up {c.alignment_error_mm:g} mm and {c.alignment_error_deg:g}° away from where it "
+                      "is published")
+    temperature = rig.temperature
+    scale_s = config.controller.time_scale
+    if temperature.table_c is not None:
+        air = "the legs' temperature follows a recorded history"
+    else:
+        air = (f"the legs' temperature starts at {temperature.t0_c:.1f} °C and drifts {temperature.drift_k_per_h:.2f} "
+               f"K/h with a {temperature.amplitude_k:g} K swing")
+    clock = (f"the simulated controller ({config.controller.protocol}) runs {scale_s:g} times faster than real time "
+             f"(its clock: {air})")
+    robot_file = None if config.robot is None else str(config.robot)
+    lines = [f"simulated machine: robot {robot.name} ({robot_file or 'the built-in paper Table 1 robot'}), "
+             f"seed {config.rig.seed}",
+             f"  geometric errors: {errors}",
+             "  beyond the geometry: " + (", ".join(e["title"] for e in effects) or "nothing (the geometry alone)"),
+             f"  instrument: {instrument}",
+             f"  clock: {clock}"]
+    return {"robot": {"name": robot.name, "file": robot_file},
+            "errors": {"source": source, "scale": scale, "max_joint_error_mm": joints_mm,
+                       "max_length_error_mm": lengths_mm, "words": errors},
+            "effects": effects, "instrument": {"kind": config.instrument, "words": instrument},
+            "time_scale": scale_s, "seed": config.rig.seed, "lines": lines}
+
+
+def _title(effect: BaseModel) -> str:
+    """An effect in words: the first part of its configuration's docstring ("Structural leg compliance")."""
+    first = (type(effect).__doc__ or type(effect).__name__).strip().split("\n\n")[0]
+    return " ".join(first.split(":")[0].removesuffix(".").split())

@@ -8,6 +8,8 @@ from __future__ import annotations
 import html
 from typing import Any
 
+from hilcal.reports.run_sections import FIGURES
+
 BRIEF_KEYS = ("max_position_mm", "rms_position_mm", "max_orientation_deg", "rms_orientation_deg")
 
 
@@ -47,9 +49,16 @@ def physics_lines(physics: dict[str, Any] | None) -> list[str]:
         lines.append("The geometric fit alone needed " + "; ".join(physics["explained"]) + ": the physics above "
                      "explains it, so the geometry fitted together with it is the one uploaded.")
     if physics.get("noise_mm") is not None:
+        source = physics.get("noise_source")
         lines.append(f"Noise yardstick: {float(physics['noise_mm']) * 1000:.1f} µm RMS pose position noise "
-                     f"({physics.get('noise_source')}).")
+                     f"({NOISE_SOURCES.get(source, source)}).")
     return lines
+
+
+NOISE_SOURCES = {"sphere_fit_rms_mm column": "from how closely each pose's spheres fitted the CMM's touch points",
+                 "robot file cmm.sphere_sigma_mm": "the sphere-centre standard deviation the robot file gives",
+                 "--cmm-sigma-mm": "as given with --cmm-sigma-mm"}
+"""Where the diagnosis' noise yardstick came from, in words."""
 
 
 def physics_html(physics: dict[str, Any] | None, measured_after: dict[str, float] | None) -> str:
@@ -63,7 +72,7 @@ def physics_html(physics: dict[str, Any] | None, measured_after: dict[str, float
         for c in [*physics.get("corrected", []), *physics.get("not_corrected", [])])
     table = ("<table><tr><th>effect</th><th>grade</th><th>values ± standard error</th><th>in the upload</th></tr>"
              f"{corrected}</table>") if corrected else ""
-    head = "".join(f"<th>{k}</th>" for k in BRIEF_KEYS)
+    head = "".join(f"<th>{label} ({unit})</th>" for label, unit, _ in FIGURES.values())
     rows = "".join(f"<tr><th>{_esc(label)}</th>" + "".join(f"<td>{_num(brief.get(k), 5)}</td>" for k in BRIEF_KEYS)
                    + "</tr>" for label, brief in prediction_rows(physics, measured_after))
     accuracy = f'<table class="kv"><tr><th></th>{head}</tr>{rows}</table>' if rows else ""

@@ -28,8 +28,18 @@ from hilcal.reports.certificate import signoff_html
 from hilcal.reports.drift import drift_html
 from hilcal.reports.figures import fixed_margins, plain_log_scale, png_base64
 from hilcal.reports.physics import physics_html
+from hilcal.reports.run_sections import (
+    compensation_html,
+    figures_sentence,
+    links_html,
+    links_lines,
+    parameter_words,
+    plausibility_html,
+    simulation_html,
+    stations_lines,
+    upload_html,
+)
 from hilcal.reports.timing import time_html
-from hilcal.reports.upload import upload_facts
 
 INDICATORS = ("max", "range", "mean", "rms")
 INDICATOR_LABELS = {"max": "maximum", "range": "range", "mean": "average", "rms": "RMS"}
@@ -83,6 +93,8 @@ class RunReport:
     """``hilcal.reports.adaptive.adaptive_section``: an adaptive run's stop reason, prediction and verification."""
     stations: dict | None = None
     """``drivers.tracker.station.stations_summary``: a laser tracker's stations and where it was set up again."""
+    simulation: dict | None = None
+    """A --sim run's simulated machine (``sim_devices.sim_config.simulation_summary``, with the run's timing)."""
 
     def __post_init__(self) -> None:
         if self.identifications and self.chosen not in self.identifications:
@@ -219,6 +231,7 @@ def report_json(r: RunReport) -> dict[str, Any]:
         "stations": r.stations,
         "drift": r.drift,
         "adaptive": r.adaptive,
+        "simulation": r.simulation,
         **(r.signoff or {}),
     }
     return _jsonable(out)
@@ -355,22 +368,6 @@ def _num(value: float | None, digits: int) -> str:
     return "n/a" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
 
 
-def _value_html(value: Any) -> str:
-    """Compact rendering of JSON-like values: dicts as nested tables, number lists inline."""
-    if isinstance(value, Mapping):
-        if not value:
-            return "{}"
-        rows = "".join(f"<tr><th>{_esc(k)}</th><td>{_value_html(v)}</td></tr>" for k, v in value.items())
-        return f'<table class="kv">{rows}</table>'
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_value_html(v) for v in value) + "]"
-    if isinstance(value, float):
-        return _esc(f"{value:.6g}")
-    if value is None:
-        return "–"
-    return _esc(value)
-
-
 def _table7_html(r: RunReport) -> str:
     cols: list[tuple[str, AccuracySummary | None]] = [("before calibration (measured)", r.verify_before)]
     cols.append((f"after calibration, {ESTIMATOR_LABELS.get(r.chosen, r.chosen)} (measured)", r.verify_after))
@@ -415,45 +412,15 @@ def _parameters_html(r: RunReport) -> str:
             cells += f"<td>{_num(float(ident.x[k]), 4)}</td>" if ident.names == ref.names else "<td>n/a</td>"
             if ident.std_errors is not None:
                 cells += f"<td>{_num(float(ident.std_errors[k]), 4)}</td>"
-        rows += f"<tr><th>{_esc(name)}</th>{cells}</tr>"
+        rows += f"<tr><th>{_esc(parameter_words(name))}</th>{cells}</tr>"
     fits = "".join(
         f"<li>{_esc(ESTIMATOR_LABELS.get(e, e))}: max |residual| {_num(r.identifications[e].max_abs_residual, 4)} "
-        f"mm, RMS {_num(r.identifications[e].rms_residual, 4)} mm, rank {r.identifications[e].rank}, "
-        f"converged {r.identifications[e].converged}</li>"
+        f"mm, RMS {_num(r.identifications[e].rms_residual, 4)} mm, rank {r.identifications[e].rank} (parameters "
+        f"the poses determine), {'converged' if r.identifications[e].converged else 'NOT converged'}</li>"
         for e in ests
     )
     return (f"<ul>{fits}</ul><details><summary>all {len(ref.names)} values</summary>"
             f'<table><tr><th>parameter</th>{head}</tr>{rows}</table></details>')
-
-
-def _upload_html(r: RunReport) -> str:
-    facts = upload_facts(_jsonable(r.upload))
-    if facts is None:
-        return "<p>nothing was uploaded to the controller.</p>"
-    state = _jsonable(r.upload)
-    record = state.get("record") or state
-    ids = [(label, record.get(key)) for key, label in UPLOAD_IDENTIFIERS if record.get(key)]
-    table = "".join(f"<tr><th>{_esc(label)}</th><td><code>{_esc(value)}</code></td></tr>" for label, value in ids)
-    writes = record.get("writes") or []
-    rows = "".join(
-        f"<tr><td>{_esc(w.get('function'))}</td><td>0x{int(w.get('address', 0)):04X}</td><td>{_esc(w.get('count'))}"
-        f"</td><td>{_esc(w.get('at'))}</td><td>{'yes' if w.get('ok') else 'NO'}</td><td>{_esc(w.get('error') or '')}"
-        "</td></tr>"
-        for w in writes
-    )
-    writes_html = (f"<details><summary>every write to the controller ({len(writes)})</summary><table><tr>"
-                   "<th>request</th><th>address</th><th>values</th><th>time</th><th>answered</th><th>error</th></tr>"
-                   f"{rows}</table></details>") if writes else ""
-    story = "".join(f"<p>{_esc(line)}</p>" for line in facts.sentences())
-    return f'{story}<table class="kv">{table}</table>{writes_html}'
-
-
-UPLOAD_IDENTIFIERS = (("params_sha256", "uploaded set, SHA-256"), ("params_crc32", "uploaded set, CRC-32"),
-                      ("previous_live_sha256", "set it replaced, SHA-256"),
-                      ("live_after_sha256", "live set read back after the commit, SHA-256"),
-                      ("compensation_sha256", "compensation block, SHA-256"),
-                      ("previous_compensation_sha256", "block it replaced, SHA-256"))
-"""The identifiers of an upload shown in report.html, with what each is in words."""
 
 
 _CSS = """body{font-family:sans-serif;max-width:1250px;margin:2em auto;padding:0 1em;color:#222}
@@ -463,32 +430,6 @@ td,th{border:1px solid #ccc;padding:3px 8px;text-align:right;vertical-align:top}
 .warn{background:#ffd;padding:.4em 1em}code{font-size:90%}"""
 
 
-def links_lines(links: dict | None) -> list[str]:
-    """One line per link: how often the run held or retried on it and for how long (s)."""
-    if not links:
-        return ["links: not recorded"]
-    return [f"{name}: {v['holds']} holds/retries, {v['retakes']} poses re-taken, held {v['held_s']:.2f} s in all "
-            f"(longest {v['longest_hold_s']:.2f} s){', LOST' if v['lost'] else ''}" for name, v in links.items()]
-
-
-def stations_lines(stations: dict | None) -> list[str]:
-    """How many stations the instrument measured from and after which poses it was set up again (none: no lines)."""
-    if not stations:
-        return []
-    moves = stations.get("moves") or []
-    after = ", ".join(str(mv.get("after_pose")) for mv in moves)
-    count = stations.get("count")
-    return [f"{count} station{'' if count == 1 else 's'}" + (f": set up again after {after}" if moves else
-                                                               ": never moved"),
-            *(f"station {mv.get('station')} from {mv.get('first_pose')}: moved {mv.get('moved_mm', 0):.1f} mm, "
-              f"turned {mv.get('turned_deg', 0):.3f}° (its monuments {mv.get('monument_shift_mm', 0):.1f} mm off in "
-              f"its view; a new station beyond {mv.get('threshold_mm', 0):.2f} mm)" for mv in moves)]
-
-
-def _links_html(links: dict | None) -> str:
-    return "<ul>" + "".join(f"<li>{_esc(line)}</li>" for line in links_lines(links)) + "</ul>"
-
-
 def report_html(r: RunReport) -> str:
     """The self-contained page: inline CSS, plots as data URIs, no external references."""
     def img(b64: str | None, alt: str) -> str:
@@ -496,15 +437,10 @@ def report_html(r: RunReport) -> str:
 
     ok = r.status == "complete"
     warnings = "".join(f"<li>{_esc(w)}</li>" for w in r.warnings)
-    pl = r.plausibility
-    violations = "".join(f"<li>{_esc(v)}</li>" for v in pl.get("violations", []))
     after_brief = r.verify_after.brief() if r.verify_after else None
-    before_brief = r.verify_before.brief()
-    headline = ", ".join(
-        f"{k}: {_num(before_brief[k], 4)} → {_num(after_brief[k], 4) if after_brief else 'n/a'}" for k in before_brief
-    )
-    limits = {k: v for k, v in pl.items() if k not in ("ok", "violations")}
-    limits_html = _value_html(_jsonable(limits)) if limits else ""
+    headline = figures_sentence(r.verify_before.brief(), after_brief)
+    estimators = (f"{ESTIMATOR_LABELS.get(r.estimator, r.estimator)} / "
+                  f"{ESTIMATOR_LABELS.get(r.chosen, r.chosen) if r.chosen else 'none'}")
     return f"""<!doctype html><html lang="en"><head><meta charset="utf-8">
 <title>hilcal run {_esc(r.run_id)}: {_esc(r.status)}</title><style>{_CSS}</style></head><body>
 <h1>Calibration run {_esc(r.run_id)}</h1>
@@ -514,13 +450,14 @@ def report_html(r: RunReport) -> str:
 {signoff_html(r.signoff)}
 <table class="kv"><tr><th>robot</th><td>{_esc(r.robot_name)}</td></tr>
 <tr><th>plan SHA-256</th><td><code>{_esc(r.plan_sha256)}</code></td></tr>
-<tr><th>estimator requested / uploaded</th><td>{_esc(r.estimator)} / {_esc(r.chosen or 'none')}</td></tr>
-<tr><th>started / finished</th><td>{_esc(r.started_at)} / {_esc(r.finished_at)}</td></tr></table>
-<p>verification (measured): {_esc(headline)}</p>
+<tr><th>estimator requested / uploaded</th><td>{_esc(estimators)}</td></tr>
+<tr><th>started / finished (UTC)</th><td>{_esc(_when(r.started_at))} / {_esc(_when(r.finished_at))}</td></tr></table>
+<p>At the verification poses, measured: {_esc(headline)}.</p>
+{simulation_html(r.simulation)}
 <h2>Measurement plan</h2>{adaptive_html(r.adaptive)}
 <h2>Verification errors before and after calibration (cf. paper Table 7)</h2>{_table7_html(r)}
 <h2>Machine time: estimated against actual</h2>{time_html(r.machine_time)}
-<h2>Links: holds and retries</h2>{_links_html(r.links)}
+<h2>Links: holds and retries</h2>{links_html(r.links)}
 {'' if not r.stations else '<h2>Instrument stations</h2><ul>' + ''.join(
     f'<li>{_esc(line)}</li>' for line in stations_lines(r.stations)) + f'</ul><p>{_esc(r.stations["frames"])}</p>'}
 <h2>Absolute position error at the verification poses (cf. paper Fig. 13)</h2>
@@ -529,14 +466,21 @@ def report_html(r: RunReport) -> str:
 {img(_per_pose_plot(r, 1, "orientation", "deg"), "orientation error per verification pose")}
 <h2>Identified parameters</h2>{img(_parameter_plot(r), "identified parameters per leg")}{_parameters_html(r)}
 <h2>Least squares against L-infinity</h2>{img(_comparison_plot(r), "LS against L-infinity")}
-<h2>Plausibility</h2><p>{'plausible' if pl.get('ok') else 'NOT plausible'}</p>{limits_html}
-{f'<ul>{violations}</ul>' if violations else ''}
+<h2>Plausibility of the identified parameters</h2>{plausibility_html(r.plausibility)}
 <h2>Physics: what the run's own recording shows beyond the geometry</h2>
 {physics_html(_jsonable(r.physics), after_brief)}
-<h2>Compensation</h2>{_value_html(_jsonable(r.compensation))}
-<h2>Upload</h2>{_upload_html(r)}
+<h2>What the run prepared for the controller</h2>{compensation_html(_jsonable(r.compensation))}
+<h2>Upload</h2>{upload_html(_jsonable(r.upload))}
 <h2>Drift since the machine's last calibration</h2>{drift_html(r.drift)}
 </body></html>"""
+
+
+def _when(iso_time: str) -> str:
+    """2026-11-27T20:06:56.144147+00:00 as 2026-11-27 20:06:56."""
+    return iso_time[:19].replace("T", " ")
+
+
+__all__ = ["RunReport", "links_lines", "report_html", "report_json", "stations_lines", "write_run_report"]
 
 
 def write_run_report(out_dir: Path, r: RunReport) -> tuple[Path, Path]:

@@ -55,7 +55,10 @@ def time_html(section: Mapping[str, Any] | None) -> str:
                  f"<td>{p['estimated_settle_s']:.1f}</td><td>{p['estimated_probing_s']:.1f}</td>"
                  f"<td>{_cell(p['estimated_s'])}</td><td>{_cell(p['actual_s'])}</td>"
                  f"<td>{'n/a' if ratio is None else f'{ratio:.2f}'}</td></tr>")
-    timing = ", ".join(f"{html.escape(k)} = {v:g}" for k, v in section["timing"].items())
+    t = section["timing"]
+    timing = html.escape(f"legs {t.get('leg_speed_mm_s', 0):g} mm/s and {t.get('leg_accel_mm_s2', 0):g} mm/s², "
+                         f"settle {t.get('settle_s', 0):g} s, {t.get('cmm_s_per_pose', 0):g} s to measure a pose, "
+                         f"{t.get('move_overhead_s', 0):g} s per move")
     note = (" The run was interrupted or paused: actual times include the stop."
             if section.get("interrupted") else "")
     return (f"<table><tr><th>phase</th><th>poses</th><th>moves</th><th>leg travel (m)</th>"

@@ -2,4 +2,4 @@
 
 from procedures.cli.app import app
 
-app()
+app(prog_name="hilcal")

@@ -261,7 +261,8 @@ def design(
     seed: int = 0,
     out_csv: Annotated[Path | None, typer.Option("--out", help="write the chosen pose set as CSV")] = None,
     pose_set: Annotated[str, typer.Option(help="pose set written by --out")] = "set3_factorial_exchange32",
-    station: Annotated[Path | None, typer.Option(help="station TOML: its \\[timing] gives the machine's speed")] = None,
+    station: Annotated[Path | None, typer.Option(help="station file (TOML): its robot is the one planned (unless "
+                                                 "--robot), its \\[timing] gives the machine's speed")] = None,
     max_minutes: Annotated[float | None, typer.Option("--max-minutes", help="time budget of the whole run")] = None,
     noise_mm: Annotated[float, typer.Option("--noise-mm", help="pose noise per component for the predicted "
                                             "verify error, mm")] = 0.005,
@@ -286,7 +287,7 @@ def design(
 
     if noise_mm <= 0 or n_verify < 1 or (max_minutes is not None and max_minutes <= 0):
         fail("--noise-mm, --n-verify and --max-minutes must be positive")
-    rb = robot_or_fail(robot)
+    rb = _design_robot(robot, station)
     timing = timing_or_fail(station)
     if acceptance is not None:
         print_acceptance_design(rb, seed, timing, cycles)
@@ -303,6 +304,28 @@ def design(
         np.savetxt(out_csv, sets[pose_set].poses, delimiter=",", header=header, comments="", fmt="%.6f")
         out.print(f"wrote {len(sets[pose_set].poses)} poses of {pose_set} to {out_csv}")
     design_plan(rb, seed, timing, max_minutes, noise_mm, plan_out, n_verify)
+
+
+def _design_robot(robot: Path | None, station: Path | None) -> Robot:
+    """The robot to plan for: --robot, else the station file's, else the built-in one (exit 2 if --robot and the
+    station's are not the same robot); printed with where it comes from."""
+    from procedures.station_robot import BUILT_IN_ROBOT, agreed_robot, named_robot
+
+    named = None
+    try:
+        named = None if station is None else named_robot(station)
+        sources = [(f"--robot {robot}", robot)] if robot is not None else []
+        if named is not None:
+            sources.append((f"the robot of the station file {station} ({named})", named))
+        path = agreed_robot(sources)
+    except ValueError as e:
+        fix = "" if named is None else f" Fix: leave out --robot to plan the station's robot, or name {robot} in it"
+        fail(f"{e}.{fix}")
+    rb = robot_or_fail(path)
+    where = (f"robot file {path}" if path is not None else BUILT_IN_ROBOT) + (
+        f", the robot of the station file {station}" if named is not None and robot is None else "")
+    out.print(f"robot: {rb.name} ({where})", highlight=False, markup=False, soft_wrap=True)
+    return rb
 
 
 def simulate(

@@ -33,17 +33,29 @@ class ControllerChoice(enum.StrEnum):
 
 
 RunRobotOption = Annotated[Path | None, typer.Option("--robot", help=(
-    "robot TOML file; the station file's robot and the simulator's (--sim-config) must be the same robot, by content "
-    "(refused before anything starts otherwise); default: theirs, else the built-in paper Table 1 robot"))]
+    "your machine's robot file (TOML; `hilcal robot-from-geometry` writes one); with --sim the simulator runs it. A "
+    "station file's robot and a simulator config's must be the same robot (else the run is refused before anything "
+    "starts, saying how to fix it); default: theirs, else the built-in paper Table 1 robot"))]
+DEFAULT_RUNS = Path("runs")
+"""Where a run's folder goes when --out is not given: runs/RUN_ID."""
 
 
 def run(
-    out_dir: Annotated[Path, typer.Option("--out", help="run folder: journal, logs, recording, report")],
+    out_dir: Annotated[Path | None, typer.Option("--out", help="run folder: journal, logs, recording, report and "
+                                                 "certificate (default: runs/RUN_ID, printed at the start; with "
+                                                 "--resume: runs/RUN_ID of that run)")] = None,
     sim: Annotated[bool, typer.Option("--sim", help="start the simulated devices and run against them")] = False,
-    station: Annotated[Path | None, typer.Option(help="station TOML (CAN, Modbus, CMM, robot, timing); with --sim "
-                                                 "only its \\[timing], sign-off settings and robot (which must be "
-                                                 "the simulator's) are used")] = None,
-    sim_config: Annotated[Path | None, typer.Option(help="simulator TOML for --sim")] = None,
+    station: Annotated[Path | None, typer.Option(help="station file (TOML): the devices' connections, the robot, "
+                                                 "\\[timing], \\[acceptance] and who signs off; with --sim only its "
+                                                 "robot and sign-off settings are used, and its \\[timing] with "
+                                                 "--station-timing")] = None,
+    station_timing: Annotated[bool, typer.Option("--station-timing", help="with --sim and --station: plan, estimate "
+                                                 "and wait at every pose with the station file's \\[timing] as "
+                                                 "written, at the machine's pace (default: the simulated station's "
+                                                 "own timing, about 100 times faster)")] = False,
+    sim_config: Annotated[Path | None, typer.Option(help="with --sim: the simulator's settings (TOML: robot, "
+                                                    "geometric errors, effects, noise, faults; docs/procedure.md)")
+                          ] = None,
     instrument: Annotated[InstrumentChoice | None, typer.Option(help="with --sim: measure with the simulated CMM or "
                                                                 "laser tracker (default: the simulator config's, "
                                                                 "else the CMM); a station file names its own "
@@ -53,10 +65,12 @@ def run(
                                                                 "or six CiA 402 drives; default: the simulator "
                                                                 "config's); a station file names its own "
                                                                 "(\\[controller] kind)")] = None,
-    resume: Annotated[str | None, typer.Option(help="continue the interrupted run RUN_ID in --out")] = None,
+    resume: Annotated[str | None, typer.Option(help="continue the stopped run RUN_ID (its folder: --out, default "
+                                               "runs/RUN_ID)")] = None,
     yes: Annotated[bool, typer.Option("--yes", help="unattended: answer every prompt yes")] = False,
     estimator: Annotated[EstimatorChoice, typer.Option(help="parameters to upload")] = EstimatorChoice.ls,
-    force: Annotated[bool, typer.Option(help="upload even an implausible parameter set")] = False,
+    force: Annotated[bool, typer.Option("--force", help="upload even a parameter set the plausibility check refuses "
+                                        "(corrections beyond a machine's assembly tolerances)")] = False,
     physics: Annotated[PhysicsChoice, typer.Option(help="on: diagnose the run's own recording and upload the "
                                                    "compensation of what it finds with the geometry; off: the "
                                                    "geometry alone")] = PhysicsChoice.on,
@@ -72,7 +86,7 @@ def run(
     max_minutes: Annotated[float | None, typer.Option(help="with --adaptive: the whole run's machine time; the verify "
                                                       "phases' estimate is kept for them (default: the fixed plan's "
                                                       "estimate)")] = None,
-    seed: int = 0,
+    seed: Annotated[int, typer.Option(help="seed of the plan's D-optimal design: the same seed, the same poses")] = 0,
     records: RecordsOption = None,
     operator: Annotated[str | None, typer.Option(help="name recorded with the run and on its certificate "
                                                   "(asked for if not given)")] = None,
@@ -90,10 +104,17 @@ def run(
     """
     from procedures.adaptive import AdaptiveError, adaptive_options
     from procedures.cli.panel import run_with_panel
-    from procedures.cli.plan_time import print_adaptive_estimate, print_run_estimate, timing_or_fail
+    from procedures.cli.plan_time import print_adaptive_estimate, print_run_estimate
     from procedures.cli.run_summary import print_run_end
-    from procedures.cli.sim_station import SIM_TIMING, SIM_TRACKER_TIMING, sim_station
-    from procedures.runner import RunRequest, default_records_path, execute_run
+    from procedures.cli.run_terminal import (
+        announce_robot,
+        print_simulation,
+        resume_folder,
+        run_timing,
+        terminal_confirm,
+    )
+    from procedures.cli.sim_station import sim_station
+    from procedures.runner import RunRequest, default_records_path, execute_run, new_run_id
 
     if resume is None and not sim and station is None:
         fail("give --station FILE for real hardware, or --sim for the simulated devices")
@@ -107,14 +128,26 @@ def run(
         fail("--target-mm and --max-minutes belong to an adaptive run: add --adaptive")
     if resume is not None and adaptive:
         fail("a resumed run continues as it started (its journal holds its plan): leave out --adaptive")
+    if station_timing and (not sim or station is None or resume is not None):
+        fail("--station-timing applies a station file's [timing] to a new simulated run: give --sim and --station "
+             "FILE (a run at the machine always uses its station's [timing]; a resumed run keeps its own)")
     try:
         adaptive_plan = adaptive_options(target_mm, max_minutes) if adaptive else None
     except AdaptiveError as e:
         fail(str(e))
-    sim_timing = SIM_TRACKER_TIMING if instrument is InstrumentChoice.tracker else SIM_TIMING
-    timing = (timing_or_fail(station) if station is not None else sim_timing) if sim else None
+    run_id = None
+    if resume is not None:
+        out_dir = resume_folder(resume, out_dir or DEFAULT_RUNS / resume)
+    elif out_dir is None:
+        run_id = new_run_id()
+        out_dir = DEFAULT_RUNS / run_id
+        out.print(f"run {run_id}: its folder is {out_dir}", highlight=False, markup=False, soft_wrap=True)
+    timing, timing_source = (None, None) if not sim or resume is not None else run_timing(
+        station, station_timing, instrument is InstrumentChoice.tracker)
     if resume is None:  # a resumed run keeps the robot it started with (its journal holds it)
         robot = _one_robot(robot, station, sim, sim_config)
+        if not sim:
+            announce_robot(robot, station)
     if operator is None and resume is None and not yes and not panel:
         operator = ask_operator()
     request = RunRequest(out_dir=out_dir, sim=sim, station_path=station, sim_config=sim_config, resume=resume,
@@ -125,7 +158,8 @@ def run(
                                                        controller.value, resume=resume is not None),
                          on_estimate=print_run_estimate, acceptance=None if acceptance is None else acceptance.value,
                          cycles=cycles, physics=physics is PhysicsChoice.on, on_prompt=_print_prompt_detail,
-                         adaptive=adaptive_plan, on_adaptive_estimate=print_adaptive_estimate)
+                         adaptive=adaptive_plan, on_adaptive_estimate=print_adaptive_estimate, run_id=run_id,
+                         timing_source=timing_source, on_simulation=print_simulation)
 
     def execute(confirm, session=None):
         result = execute_run(request, confirm, session)
@@ -138,17 +172,19 @@ def run(
                                 operator=operator, yes=yes, records=records or default_records_path(),
                                 linger_min=panel_linger_min)
     else:
-        result = execute(None if yes else (lambda text: typer.confirm(text, default=False)))
+        result = execute(None if yes else terminal_confirm)
     raise typer.Exit(result.code)
 
 
 def _one_robot(robot: Path | None, station: Path | None, sim: bool, sim_config: Path | None) -> Path | None:
-    """The run's robot file: --robot, the station file's robot and the simulator's must be one robot (exit 2 naming
-    both files and the first difference otherwise); the machine's when --robot is not given (None: built-in).
+    """The run's robot file: --robot, the station file's robot and a simulator config's robot must be one robot
+    (exit 2 naming both, the first difference and the fix otherwise); the machine's when --robot is not given (None:
+    the built-in robot).
 
-    The machine's robot is the station file's (one that names none: the built-in robot), or with --sim the
-    simulator's; a --sim run's station file counts only if it names a robot (it is read for its [timing]).
+    At the machine, a station file that names no robot means the built-in robot. A simulator config that names no
+    robot simulates the run's robot (`--robot`, else the station file's), so only one that names a robot must agree.
     """
+    from procedures.cli.run_terminal import robot_fix
     from procedures.cli.sim_station import simulator_robot
     from procedures.station_robot import BUILT_IN_ROBOT, agreed_robot, named_robot
 
@@ -160,10 +196,15 @@ def _one_robot(robot: Path | None, station: Path | None, sim: bool, sim_config: 
         elif station is not None and not sim:
             sources.append((f"the station file {station} (it names no robot: {BUILT_IN_ROBOT})", None))
         if sim:
-            sources.append(simulator_robot(sim_config))
-        return agreed_robot(sources)
+            said, path = simulator_robot(sim_config)
+            if path is not None:
+                sources.append((said, path))
     except ValueError as e:  # StationConfigError, SimConfigError
         fail(str(e))
+    try:
+        return agreed_robot(sources)
+    except ValueError as e:
+        fail(f"{e}. {robot_fix(robot, station, named, sim_config)}")
 
 
 def _print_prompt_detail(prompt) -> None:

@@ -27,6 +27,10 @@ from procedures.plan import (
 )
 from procedures.timing import TimingFileError, TimingSection, load_timing
 
+ORDERS = {"time": "poses in the order of least machine time", "design": "poses in the design's order",
+          "adaptive": "poses as the adaptive run chose them"}
+"""A plan's pose order in words."""
+
 
 def timing_or_fail(station: Path | None) -> TimingSection:
     """The [timing] section of a station file (defaults without one); exit 2 if it is bad."""
@@ -52,8 +56,10 @@ def estimate_table(title: str, rows: list[tuple[str, TimeEstimate]]) -> Table:
 def print_run_estimate(plan: CalibrationPlan, estimate: TimeEstimate, timing: TimingSection) -> None:
     """`hilcal run`: the estimated machine time and its parts, per phase, before anything moves."""
     rows = [(p.phase.replace("_", " "), TimeEstimate((p,))) for p in estimate.phases]
-    out.print(estimate_table(f"Estimated machine time: {format_minutes(estimate.total_s)} ({plan.order} order; "
-                             f"{timing.describe()}, settle {plan.settle_s:g} s)", [*rows, ("total", estimate)]))
+    said = timing.model_copy(update={"settle_s": plan.settle_s}).describe()  # the plan's settle wait is the one used
+    order = ORDERS.get(plan.order, plan.order)
+    out.print(estimate_table(f"Estimated machine time: {format_minutes(estimate.total_s)} ({order}; {said})",
+                             [*rows, ("total", estimate)]))
 
 
 def print_adaptive_estimate(run: Any, before_motion: dict, timing: TimingSection) -> None:

@@ -15,13 +15,16 @@ import typer
 from rich.markup import escape
 
 from procedures.cli.common import err, fail, out
+from procedures.cli.help_format import HelpCommand, HelpGroup
 
 UNAVAILABLE = 3
 RecordsOption = Annotated[str | None, typer.Option(
     "--records", help="records database: a SQLite file path or a URL (postgresql+psycopg://user@host/db); "
-                      "default $HILCAL_RECORDS")]
+                      "default: $HILCAL_RECORDS, else ~/.local/share/hilcal/records.sqlite")]
 
-records_app = typer.Typer(no_args_is_help=True, help="The calibration records: sync, machines.")
+records_app = typer.Typer(cls=HelpGroup, no_args_is_help=True,
+                          help="The calibration records: sync (write what runs kept while the database was away), "
+                          "machines (every machine recorded).")
 
 
 def unavailable(message: str) -> NoReturn:
@@ -137,7 +140,7 @@ def _write_plot(result: dict[str, Any], path: Path) -> None:
     out.print(f"trend plots: {path}", highlight=False)
 
 
-@records_app.command("sync")
+@records_app.command("sync", cls=HelpCommand)
 def sync(
     folders: Annotated[list[Path], typer.Argument(help="run folders, or folders holding run folders")],
     records: RecordsOption = None,
@@ -161,7 +164,7 @@ def sync(
         raise typer.Exit(1)
 
 
-@records_app.command("machines")
+@records_app.command("machines", cls=HelpCommand)
 def machines(records: RecordsOption = None) -> None:
     """Every machine in the records: its identity, number of runs and the newest run."""
     from procedures.records import RecordsUnavailable

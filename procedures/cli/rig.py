@@ -15,7 +15,8 @@ if TYPE_CHECKING:
 
 
 def sim_command(
-    config: Annotated[Path | None, typer.Option(help="simulator TOML (robot, rig errors, noise, faults)")] = None,
+    config: Annotated[Path | None, typer.Option(help="simulator settings (TOML: robot, geometric errors, effects, "
+                                                "noise, faults; docs/procedure.md)")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the channels as one JSON line")] = False,
     state_file: Annotated[Path | None, typer.Option(help="keep controller and rig state in this file")] = None,
     seed: Annotated[int | None, typer.Option(help="rig seed")] = None,
@@ -24,6 +25,8 @@ def sim_command(
     controller: Annotated[str | None, typer.Option(
         help="the controller's protocol: hilcal (the default: hilcal's own CAN messages + Modbus TCP), canopen (the "
              "HX-6 hexapod controller, one CANopen node) or canopen-cia402 (six CiA 402 leg drives)")] = None,
+    robot: Annotated[Path | None, typer.Option(help="simulate this robot file (default: the config's robot, else the "
+                                               "built-in paper Table 1 robot)")] = None,
 ) -> None:
     """Start every simulated device (controller on SLCAN/pty + Modbus TCP or CANopen on SLCAN, CMM on a pty or laser
     tracker on TCP) until Ctrl-C."""
@@ -36,7 +39,7 @@ def sim_command(
         if controller not in (None, *CONTROLLER_PROTOCOLS):
             raise SimConfigError(f"--controller must be one of {', '.join(CONTROLLER_PROTOCOLS)}, not {controller!r}")
         sim_config = load_sim_config(config, state_file=state_file, seed=seed, instrument=instrument,
-                                     controller=controller)
+                                     controller=controller, robot=robot)
     except SimConfigError as e:
         fail(str(e))
     raise typer.Exit(run_sim_process(sim_config, as_json))

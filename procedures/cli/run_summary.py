@@ -27,6 +27,9 @@ FIGURES = (("max_position_mm", "max position", "mm", 4), ("rms_position_mm", "RM
 MODES = {"full": "joint positions a, b and leg offsets l0", "offsets_only": "leg offsets l0 only"}
 """What each compensation mode of ``hilcal.compensation.compensate`` changes in the controller."""
 
+RULE_NAMES = {"iso14253-1": "ISO 14253-1", "simple": "simple"}
+"""The sign-off's decision rules by name (``hilcal.acceptance.verdict.RULES``)."""
+
 VERDICT_STYLE = {"pass": "bold green", "fail": "bold red", "not proven": "bold yellow"}
 
 
@@ -73,7 +76,7 @@ def uploaded_lines(report: Mapping[str, Any]) -> list[str]:
     facts = upload_facts(upload)
     outcome = "outcome not recorded" if facts is None else facts.summary()
     sha = None if facts is None else facts.params_sha256
-    lines = [f"mode {mode or 'not recorded'}" + (f": {MODES[mode]}" if mode in MODES else ""),
+    lines = [MODES.get(mode, f"compensation mode {mode or 'not recorded'}"),
              outcome + (f" (sha256 {sha[:12]})" if isinstance(sha, str) else "")]
     physics = report.get("physics") if isinstance(report.get("physics"), Mapping) else {}
     block = (report.get("compensation") or {}).get("compensation_block")
@@ -112,14 +115,15 @@ def verdict_text(report: Mapping[str, Any]) -> Text:
     rule = (cert.get("decision_rule") or {}).get("key")
     text = Text(verdict, style=VERDICT_STYLE.get(verdict, ""))
     if limits:
-        rule_words = f", {rule} decision rule" if rule else ""
+        rule_words = f", {RULE_NAMES.get(rule, rule)} decision rule" if rule else ""
         text.append(f" ({len(limits)} limit{'s' if len(limits) != 1 else ''}{rule_words})")
     for c in limits:
         if c.get("decision") == "pass":
             continue
         value, spread = _number(c.get("value")), _number(c.get("U"))
         figure = "" if value is None else f": {value:.4g}" + ("" if spread is None else f" ± {spread:.2g}")
-        text.append(f"; {c.get('key')} {c.get('decision')}{figure} {c.get('unit', '')} against {c.get('limit')}")
+        text.append(f"; {c.get('label') or c.get('key')} {c.get('decision')}{figure} {c.get('unit', '')} against "
+                    f"{c.get('limit')}")
     return text
 
 

@@ -4,8 +4,9 @@ The runner knows no simulator; it calls this context manager (``RunRequest.sim_s
 the resume of a ``--sim`` run alike, so a resumed run re-spawns the simulator on the run's state file. The station
 it hands over is what an operator would write down for a real one: the devices' channels, the CMM's identity and
 stated uncertainty (the simulator's configuration states them) or the laser tracker's identity, MPE, air and targets,
-the tracker driver's timeouts for the simulator's speed, and example acceptance limits. `simulator_robot` is the robot
-the simulator will run, which the run's robot must be (``procedures.station.agreed_robot``).
+the tracker driver's timeouts for the simulator's speed, and example acceptance limits. The simulator runs the run's
+robot; `simulator_robot` is the one a simulator config names, which the run's robot must then be
+(``procedures.station_robot.agreed_robot``).
 """
 
 from __future__ import annotations
@@ -16,11 +17,10 @@ from pathlib import Path
 from typing import Any
 
 from drivers.tracker.emscon import EmsconConfig
-from procedures.runner import SimulatorStartError
+from procedures.runner import SimulatedStation, SimulatorStartError
 from procedures.sections.tracker import TrackerDriver
 from procedures.signoff import AcceptanceSection
-from procedures.station import StationConfig, station_from_channels
-from procedures.station_robot import BUILT_IN_ROBOT
+from procedures.station import station_from_channels
 from procedures.timing import TimingSection
 from sim_devices.launcher import SimStartError, spawn_sim_subprocess, stop_sim_subprocess
 from sim_devices.sim_config import load_sim_config
@@ -84,13 +84,14 @@ def sim_tracker_driver(sim_config: str | Path | None) -> TrackerDriver:
 
 
 def simulator_robot(sim_config: Path | None) -> tuple[str, Path | None]:
-    """The robot the simulator of a ``--sim`` run will run: (where it comes from, in words; its robot file, None for
-    the built-in robot). SimConfigError (a ValueError) for a configuration that cannot be read."""
+    """The robot a simulator config names: (where it comes from, in words; its robot file), None when it names none
+    (the simulator then runs the run's robot). SimConfigError (a ValueError) for a configuration that cannot be
+    read."""
     if sim_config is None:
-        return f"the simulator's robot (no --sim-config: {BUILT_IN_ROBOT})", None
+        return "no simulator config", None
     robot = load_sim_config(sim_config).robot  # a relative path is relative to the configuration file
     if robot is None:
-        return f"the simulator config {sim_config} (it names no robot: {BUILT_IN_ROBOT})", None
+        return f"the simulator config {sim_config} (it names no robot)", None
     return f"the robot of the simulator config {sim_config} ({robot})", robot
 
 
@@ -112,10 +113,11 @@ CONTROLLER_FILE = "sim_controller.txt"
 
 @contextlib.contextmanager
 def sim_station(sim_config: str | None, out_dir: Path, robot_path: str | None, instrument: str | None = None,
-                controller: str | None = None, resume: bool = False) -> Iterator[StationConfig]:
-    """Spawn the simulator (state in ``out_dir/sim_state.json``, log in ``out_dir/sim.log``; ``instrument`` "cmm" or
-    "tracker" and ``controller`` "hilcal", "canopen" or "canopen-cia402" override the configuration's; a resumed run
-    spawns the controller its run started with); stop it on exit."""
+                controller: str | None = None, resume: bool = False) -> Iterator[SimulatedStation]:
+    """Spawn the simulator of the run's robot (state in ``out_dir/sim_state.json``, log in ``out_dir/sim.log``;
+    ``instrument`` "cmm" or "tracker" and ``controller`` "hilcal", "canopen" or "canopen-cia402" override the
+    configuration's; a resumed run spawns the controller its run started with); yield its station and what it
+    simulates; stop it on exit."""
     chosen = out_dir / CONTROLLER_FILE
     if resume and controller is None and chosen.exists():
         controller = chosen.read_text().strip() or None
@@ -123,7 +125,8 @@ def sim_station(sim_config: str | None, out_dir: Path, robot_path: str | None, i
         out_dir.mkdir(parents=True, exist_ok=True)
         chosen.write_text(controller or "")
     args = ["--state-file", str(out_dir / "sim_state.json"), *(["--instrument", instrument] if instrument else []),
-            *(["--controller", controller] if controller else [])]
+            *(["--controller", controller] if controller else []),
+            *(["--robot", str(robot_path)] if robot_path else [])]
     try:
         proc, channels = spawn_sim_subprocess(sim_config, args, log_path=out_dir / "sim.log")
     except SimStartError as e:
@@ -136,6 +139,7 @@ def sim_station(sim_config: str | None, out_dir: Path, robot_path: str | None, i
             station = station.model_copy(update={"tracker": tracker})
         own_robot = robot_path is not None or channels.get("robot_path") is not None
         limits = SIM_ACCEPTANCE if tracker is None else SIM_TRACKER_ACCEPTANCE
-        yield station if own_robot else station.model_copy(update={"acceptance": limits})
+        yield SimulatedStation(station if own_robot else station.model_copy(update={"acceptance": limits}),
+                               channels.get("simulation"))
     finally:
         stop_sim_subprocess(proc)

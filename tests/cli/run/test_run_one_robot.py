@@ -1,6 +1,7 @@
 """One robot per run: `hilcal run` plans, moves and measures with the robot of the simulator's configuration when
 only that names one (a digital twin's `sim_config.toml`), keeps it on resume, and refuses before anything starts a
---robot or a station file's robot that is not the machine's, naming both files and the first difference."""
+--robot or a station file's robot that is not the machine's, naming both files, the first difference and the fix.
+(A simulator config that names no robot simulates the run's: tests/cli/test_newcomer.py.)"""
 
 from __future__ import annotations
 
@@ -82,8 +83,7 @@ def test_a_robot_that_is_not_the_simulators_is_refused(tmp_path):
     assert f"--robot {moved} and the robot of the simulator config {config}" in said
     assert "leg 3's a_mm differs: z 0.5 vs 0.0 mm" in said
 
-    said = _refused(["--sim", "--robot", str(SMALL)], tmp_path / "c")  # no --sim-config: the built-in robot
-    assert "the simulator's robot (no --sim-config: the built-in paper Table 1 robot)" in said
+    assert "Fix: leave out --robot to run the robot the simulator config" in said  # and how to put it right
 
 
 def test_a_station_files_robot_that_is_not_the_robots_is_refused(tmp_path):

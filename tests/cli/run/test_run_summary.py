@@ -17,7 +17,7 @@ AFTER = {"max_position_mm": 0.0125, "rms_position_mm": 0.0075, "max_orientation_
 
 
 def _text(report: dict, certificate: Path | None = None) -> list[str]:
-    console = Console(width=120, record=True, file=io.StringIO())
+    console = Console(width=200, record=True, file=io.StringIO())
     console.print(run_summary(report, Path("/runs/[bay 2]/report.json"), certificate))
     return [" ".join(line.split()) for line in console.export_text().splitlines() if line.strip()]
 
@@ -31,7 +31,8 @@ def _report(**changes: object) -> dict:
               "upload": {"outcome": "committed", "record": {"params_sha256": "abcdef0123456789",
                                                             "live_readback_match": True}},
               "certificate": {"verdict": "not proven", "decision_rule": {"key": "simple"}, "limits": [
-                  {"key": "max_position_mm", "decision": "not proven", "value": 0.0125, "U": 0.0025, "unit": "mm",
+                  {"key": "max_position_mm", "label": "largest position error after calibration",
+                   "decision": "not proven", "value": 0.0125, "U": 0.0025, "unit": "mm",
                    "limit": 0.013},
                   {"key": "rms_position_mm", "decision": "pass", "value": 0.0075, "U": 0.001, "unit": "mm",
                    "limit": 0.02}]}}
@@ -46,17 +47,17 @@ def test_summary_of_a_complete_run() -> None:
                           "RMS position (mm) 1.2500 0.0075",  # no U in the report for it: none is printed
                           "max orientation (deg) 0.05000 0.00030",
                           "RMS orientation (deg) 0.04000 0.00020"]
-    assert lines[7:] == ["uploaded mode offsets_only: leg offsets l0 only",
+    assert lines[7:] == ["uploaded leg offsets l0 only",
                          "committed (not saved); read back: matches (sha256 abcdef012345)",
-                         "verdict not proven (2 limits, simple decision rule); max_position_mm not proven: 0.0125 ± "
-                         "0.0025 mm against 0.013",
+                         "verdict not proven (2 limits, simple decision rule); largest position error after "
+                         "calibration not proven: 0.0125 ± 0.0025 mm against 0.013",
                          "report /runs/[bay 2]/report.html (and report.json)",
                          "certificate /runs/[bay 2]/certificate.pdf"]
 
 
 def test_the_physics_corrected_are_listed_under_uploaded() -> None:
     lines = _text(_report(compensation={"mode": "physics"}, physics={"corrected": ["leg compliance", "backlash"]}))
-    at = lines.index("uploaded mode physics")
+    at = lines.index("uploaded compensation mode physics")
     assert lines[at + 2] == "corrected: leg compliance, backlash"
     assert all("corrected" not in line for line in _text(_report(physics={"found": ["backlash"]})))
 
