@@ -230,7 +230,7 @@ def simulated_runs(work: Path, timing: TimingSection) -> list[str]:
         save_plan(plan, work / f"{plan.order}.json")
         env = {**os.environ, "HILCAL_RECORDS": str(work / "records.sqlite")}
         run_dir = work / f"run-{plan.order}"
-        args = ["--sim-config", str(work / "sim.toml"), "--station", str(work / "station.toml"),
+        args = ["--sim-config", str(work / "sim.toml"), "--station", str(work / "station.toml"), "--station-timing",
                 "--plan", str(work / f"{plan.order}.json")]
         t0 = time.perf_counter()
         resumes = 0

@@ -54,7 +54,7 @@ def _run_args(work: Path, sim_config: str | None, station: str | None) -> list[s
         args += ["--sim-config", str(work / "sim.toml")]
     if station is not None:
         (work / "station.toml").write_text(station)
-        args += ["--station", str(work / "station.toml")]
+        args += ["--station", str(work / "station.toml"), "--station-timing"]
     return args
 
 

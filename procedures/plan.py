@@ -161,7 +161,10 @@ def plan_from_poses(robot: Robot, measure: np.ndarray, verify: np.ndarray, *, ti
 
     The repeated pose is the one with the most room below it for the retreat (``repeatable_pose``).
     """
-    M, V = np.round(np.atleast_2d(measure), 6), np.round(np.atleast_2d(verify), 6).reshape(-1, 6)
+    # rounded to 1 nm for the plan file, and kept inside the workspace: a bound at the edge of a robot file's
+    # workspace (a home height from leg lengths has more decimals) must not round to just outside it
+    M, V = (np.clip(np.round(np.atleast_2d(p), 6).reshape(-1, 6), robot.workspace[:, 0], robot.workspace[:, 1])
+            for p in (measure, verify))
     base = CalibrationPlan(robot_name=robot.name, measure_poses=M.tolist(), verify_poses=V.tolist(), seed=seed,
                            approach_mm=approach_mm, settle_s=settle_s, order=order)
     counts = np.ones(len(M), dtype=int)

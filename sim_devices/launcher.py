@@ -19,7 +19,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any, cast
 
@@ -90,11 +90,13 @@ def _rows(matrix: list[list[float]]) -> str:
     return "\n".join("    [" + ", ".join(f"{v:12.4f}" for v in row) + "]" for row in np.asarray(matrix))
 
 
-def run_sim_process(config: SimConfig, as_json: bool, *, stdin_watch: bool = False) -> int:
+def run_sim_process(config: SimConfig, as_json: bool, *, stdin_watch: bool = False,
+                    on_channels: Callable[[dict[str, Any]], None] | None = None) -> int:
     """``hilcal sim``: start everything, print the channels (text or one JSON line), serve until SIGINT/SIGTERM.
 
-    With ``stdin_watch`` it also stops when stdin reaches end of file (the spawning process has gone).
-    Returns the exit code: 0 after a clean stop, 2 if the simulator could not start.
+    With ``stdin_watch`` it also stops when stdin reaches end of file (the spawning process has gone);
+    ``on_channels`` is called with the channels once they are printed (``hilcal sim --station-out`` writes the
+    station file). Returns the exit code: 0 after a clean stop, 2 if the simulator could not start.
     """
     stop = threading.Event()
 
@@ -112,6 +114,8 @@ def run_sim_process(config: SimConfig, as_json: bool, *, stdin_watch: bool = Fal
         with handle:
             channels = {**handle.channels(), "simulation": simulation_summary(handle.config, handle.robot)}
             print(json.dumps(channels) if as_json else _describe(channels, handle), flush=True)
+            if on_channels is not None:
+                on_channels(channels)
             watch_fd = sys.stdin.fileno() if stdin_watch else None
             while not stop.is_set():
                 if watch_fd is None:

@@ -155,7 +155,8 @@ def run_all(runs: list[Run], work: Path, jobs: int) -> list[dict[str, Any]]:
             out = work / run.name
             env = {**os.environ, "HILCAL_RECORDS": str(work / f"{run.name}.sqlite"), "OPENBLAS_NUM_THREADS": "1"}
             cmd = [sys.executable, "-m", "procedures.cli", "run", "--sim", "--yes", "--operator", "bench",
-                   "--sim-config", str(_config(work, run)), "--station", str(station), "--out", str(out), *run.args]
+                   "--sim-config", str(_config(work, run)), "--station", str(station), "--station-timing",
+                   "--out", str(out), *run.args]
             log = (work / f"{run.name}.log").open("w")
             active[i] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env), out,
                          time.perf_counter())

@@ -14,6 +14,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+from hilcal.reports.physics import NOISE_SOURCES
 from hilcal.reports.upload import upload_facts
 
 _CSS = """@page{size:A4;margin:13mm 13mm 15mm 13mm}
@@ -161,9 +162,9 @@ def _compensation(report: Mapping[str, Any]) -> str:
     table = ("<table><tr><th>effect</th><th>values ± standard error</th><th>in the upload</th></tr>"
              + "".join(rows) + "</table>") if rows else "<p>Nothing beyond the geometry was found.</p>"
     by_hand = "".join(f"<div class='warn'>Set by hand: {_esc(t)}</div>" for t in physics.get("by_hand", []))
-    noise = physics.get("noise_mm")
+    noise, source = physics.get("noise_mm"), physics.get("noise_source")
     source = "" if noise is None else (f"<p class='small'>Noise yardstick: {float(noise) * 1000:.1f} µm RMS pose "
-                                       f"position noise ({_esc(physics.get('noise_source'))}).</p>")
+                                       f"position noise ({_esc(NOISE_SOURCES.get(source, source))}).</p>")
     return f"<p>Geometry: {_esc(physics.get('geometry_source'))}.</p>{table}{by_hand}{source}"
 
 
@@ -214,7 +215,8 @@ def certificate_html(report: Mapping[str, Any]) -> str:
     warnings = [w for w in cert.get("warnings", []) if w]
     temp = env.get("temperature_c")
     temperature = _esc(env.get("note")) if not temp else (
-        f"{_num(temp['mean'], 2)} °C (from {_num(temp['min'], 2)} to {_num(temp['max'], 2)} °C, {temp['n']} readings)")
+        f"{_num(temp['mean'], 2)} °C (from {_num(temp['min'], 2)} to {_num(temp['max'], 2)} °C, {temp['n']} readings)"
+        + (f": {_esc(env['note'])}" if env.get("note") else ""))
     due = _esc(inst.get("calibration_due")) + (" – <b>OVERDUE</b>" if inst.get("overdue") else "")
     warn = "".join(f"<div class='warn'>{_esc(w)}</div>" for w in warnings)
     return f"""<!doctype html><html lang="en"><head><meta charset="utf-8">

@@ -77,10 +77,11 @@ def figures_table(rows: list[tuple[str, Mapping[str, Any] | None]]) -> str:
 
 def plausibility_html(plausibility: Mapping[str, Any]) -> str:
     """The check that guards the upload, explained: its bounds and, for a set beyond them, why it was refused."""
-    joint, offset = plausibility.get("joint_bound_mm"), plausibility.get("offset_bound_mm")
+    joint, offset = (f"{v:g}" if isinstance(v, int | float) else _esc(v) for v in (
+        plausibility.get("joint_bound_mm"), plausibility.get("offset_bound_mm")))
     rule = (f"An identified set is plausible when it converged, every parameter is determined and every correction "
-            f"is one a machine's assembly can have: each joint within {_esc(joint)} mm of its nominal position and "
-            f"each leg's length offset within {_esc(offset)} mm. A larger correction means a wrong robot file or a "
+            f"is one a machine's assembly can have: each joint within {joint} mm of its nominal position and "
+            f"each leg's length offset within {offset} mm. A larger correction means a wrong robot file or a "
             "gross fault (a wrongly wired transducer, a loose joint), and the run does not upload it unless told to "
             "(--force).")
     if plausibility.get("ok"):

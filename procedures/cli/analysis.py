@@ -244,7 +244,7 @@ def identifiability(
     robot: RobotOption = None,
     recording: Annotated[Path | None, typer.Option(help="use this recording's measure poses")] = None,
     pose_set: Annotated[str, typer.Option(help="or one of the paper's four pose sets")] = "set3_factorial_exchange32",
-    seed: int = 0,
+    seed: Annotated[int, typer.Option(help="seed of the random and D-optimal pose sets")] = 0,
 ) -> None:
     """Rank, condition number and unidentifiable directions of an error model over a pose set."""
     from hilcal.identifiability import format_report
@@ -258,7 +258,7 @@ def identifiability(
 
 def design(
     robot: RobotOption = None,
-    seed: int = 0,
+    seed: Annotated[int, typer.Option(help="seed of the D-optimal design: the same seed, the same poses")] = 0,
     out_csv: Annotated[Path | None, typer.Option("--out", help="write the chosen pose set as CSV")] = None,
     pose_set: Annotated[str, typer.Option(help="pose set written by --out")] = "set3_factorial_exchange32",
     station: Annotated[Path | None, typer.Option(help="station file (TOML): its robot is the one planned (unless "
@@ -330,7 +330,7 @@ def _design_robot(robot: Path | None, station: Path | None) -> Robot:
 
 def simulate(
     out_path: Annotated[Path, typer.Option("--out", help="recording CSV to write")],
-    seed: int = 0,
+    seed: Annotated[int, typer.Option(help="seed of the poses and of the simulated noise")] = 0,
     errors: Annotated[str, typer.Option(help="errors TOML file or table2|table3|table4|table5|zero")] = "table2",
     noise_mm: Annotated[float, typer.Option("--noise-mm", help="CMM noise std per sphere coordinate, mm")] = 0.005,
     robot: RobotOption = None,

@@ -100,7 +100,8 @@ def run(
 ) -> None:
     """Measure, identify, upload (transactionally), verify and sign off: the whole calibration at the machine.
 
-    Exit codes: 0 complete (and accepted), 2 bad input, 3 stopped (resumable), 4 complete but not accepted.
+    Exit codes: 0 complete (and accepted), 2 bad input, 3 stopped (resumable with --resume) or not started (a
+    device did not answer), 4 complete but not accepted.
     """
     from procedures.adaptive import AdaptiveError, adaptive_options
     from procedures.cli.panel import run_with_panel
@@ -146,6 +147,7 @@ def run(
         station, station_timing, instrument is InstrumentChoice.tracker)
     if resume is None:  # a resumed run keeps the robot it started with (its journal holds it)
         robot = _one_robot(robot, station, sim, sim_config)
+        robot = None if robot is None else robot.resolve()  # the journal keeps it: a resume may start elsewhere
         if not sim:
             announce_robot(robot, station)
     if operator is None and resume is None and not yes and not panel:

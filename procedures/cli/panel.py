@@ -41,7 +41,8 @@ def run_with_panel(execute: Callable[[Any], Any], *, host: str, port: int, opera
 
 def panel(
     records: Annotated[str | None, typer.Option(help="records database: a SQLite file path or a URL "
-                                                "(postgresql+psycopg://user@host/db); default $HILCAL_RECORDS")] = None,
+                                                "(postgresql+psycopg://user@host/db); default: $HILCAL_RECORDS, else "
+                                                "~/.local/share/hilcal/records.sqlite")] = None,
     port: PortOption = DEFAULT_PORT,
     host: Annotated[str, typer.Option(help="address; other than the loopback needs the printed token")] = (
         "127.0.0.1"),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -27,6 +28,9 @@ def sim_command(
              "HX-6 hexapod controller, one CANopen node) or canopen-cia402 (six CiA 402 leg drives)")] = None,
     robot: Annotated[Path | None, typer.Option(help="simulate this robot file (default: the config's robot, else the "
                                                "built-in paper Table 1 robot)")] = None,
+    station_out: Annotated[Path | None, typer.Option(help="write a station file wired to these simulated devices "
+                                                     "(for `hilcal check --station` and `hilcal run --station` while "
+                                                     "the simulator runs)")] = None,
 ) -> None:
     """Start every simulated device (controller on SLCAN/pty + Modbus TCP or CANopen on SLCAN, CMM on a pty or laser
     tracker on TCP) until Ctrl-C."""
@@ -39,14 +43,30 @@ def sim_command(
         if controller not in (None, *CONTROLLER_PROTOCOLS):
             raise SimConfigError(f"--controller must be one of {', '.join(CONTROLLER_PROTOCOLS)}, not {controller!r}")
         sim_config = load_sim_config(config, state_file=state_file, seed=seed, instrument=instrument,
-                                     controller=controller, robot=robot)
+                                     controller=controller, robot=None if robot is None else robot.resolve())
     except SimConfigError as e:
         fail(str(e))
-    raise typer.Exit(run_sim_process(sim_config, as_json))
+    write = None if station_out is None else functools.partial(_write_station, station_out, config)
+    raise typer.Exit(run_sim_process(sim_config, as_json, on_channels=write))
+
+
+def _write_station(path: Path, config: Path | None, channels: dict) -> None:
+    """The station file of the running simulator: its devices' channels, its robot, its CMM's statement or its
+    tracker's (with the driver's timeouts for the simulator's speed)."""
+    from procedures.cli.sim_station import sim_controller_section, sim_tracker_driver
+    from procedures.station import save_station, station_from_channels
+
+    station = station_from_channels(channels, channels.get("robot_path"), sim_controller_section(channels))
+    tracker = station.measuring_tracker()
+    if tracker is not None:
+        station = station.model_copy(update={"tracker": tracker.model_copy(
+            update={"driver": sim_tracker_driver(config)})})
+    save_station(station, path)
+    print(f"station file {path}: these simulated devices (hilcal check --station {path})", flush=True)
 
 
 def demo(
-    seed: int = 0,
+    seed: Annotated[int, typer.Option(help="seed of the simulated rig's poses and noise")] = 0,
     out_dir: Annotated[Path | None, typer.Option("--out", help="keep the recording in this folder")] = None,
 ) -> None:
     """Simulate a rig with the paper's Table 2 errors, calibrate with LS and L-infinity, print the table."""

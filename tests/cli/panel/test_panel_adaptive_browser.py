@@ -51,7 +51,7 @@ def test_the_panel_starts_an_adaptive_run_and_shows_its_prediction_and_remaining
     env = {**os.environ, "HILCAL_RECORDS": str(tmp_path / "records.sqlite")}
     with chromium() as browser, log.open("w") as sink:
         proc = subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", "--panel", "--port", str(port),
-                                 "--sim", "--sim-config", str(tmp_path / "sim.toml"), "--station",
+                                 "--sim", "--sim-config", str(tmp_path / "sim.toml"), "--station-timing", "--station",
                                  str(tmp_path / "station.toml"), "--out", str(out)],
                                 stdin=subprocess.DEVNULL, stdout=sink, stderr=subprocess.STDOUT, env=env)
         try:

@@ -101,7 +101,8 @@ def test_a_whole_run_driven_from_the_browser_alone(tmp_path, instant_plan):
             browser.find_element("id", "close-panel").click()
             assert proc.wait(30) == 0, log.read_text()
         printed = " ".join(log.read_text().split())  # the terminal ends the panel run with the summary too
-        assert "verification poses before after max position (mm)" in printed and "uploaded mode full" in printed
+        assert "verification poses before after max position (mm)" in printed
+        assert "uploaded joint positions a, b and leg offsets l0" in printed
         assert "verdict pass" in printed and f"report {out / 'report.html'} (and report.json)" in printed
         answers = [json.loads(r[0]) for r in journal_rows(out, "SELECT data_json FROM events WHERE kind = "
                                                            "'operator_answer' ORDER BY id")]

@@ -45,8 +45,8 @@ def strict(tmp_path_factory: pytest.TempPathFactory, small_plan: Path) -> tuple[
     (tmp / "station.toml").write_text(f"[acceptance]\nmax_position_mm = 0.0005\n{instant_timing()}")
     (tmp / "sim.toml").write_text(INSTANT_SIM)
     done = hilcal("run", "--sim", "--yes", "--operator", OPERATOR, "--station", str(tmp / "station.toml"),
-                   "--sim-config", str(tmp / "sim.toml"), "--plan", str(small_plan), "--out", str(tmp / "run"),
-                   records=tmp / "records.sqlite")
+                   "--station-timing", "--sim-config", str(tmp / "sim.toml"), "--plan", str(small_plan), "--out",
+                   str(tmp / "run"), records=tmp / "records.sqlite")
     return tmp, done
 
 
@@ -107,7 +107,7 @@ def test_the_simulated_station_states_its_cmm_and_example_limits(accepted: tuple
     report = json.loads((tmp / "run" / "report.json").read_text())
     instrument = report["instrument"]
     assert instrument["stated_uncertainty_mm"] == pytest.approx(2 * NOISE_MM)
-    assert "simulator" in instrument["uncertainty_source"] and f"{NOISE_MM:g} mm" in instrument["cmm"]
+    assert "simulated CMM" in instrument["uncertainty_source"] and f"{NOISE_MM:g} mm" in instrument["cmm"]
     assert instrument["warning"] is None and report["uncertainty"]["cmm_pose_sd"] is not None
     after = report["uncertainty"]["after"]
     for check in report["certificate"]["limits"]:
@@ -137,11 +137,11 @@ def test_the_run_ends_with_its_summary(accepted: tuple[Path, subprocess.Complete
         before, after = u["before"][key], u["after"][key]
         assert row == (f"{label} {before['value']:.{decimals}f} ± {before['U']:.{decimals}f} "
                        f"{after['value']:.{decimals}f} ± {after['U']:.{decimals}f}")
-    assert summary[7].startswith("uploaded mode full: joint positions a, b and leg offsets l0")
+    assert summary[7].startswith("uploaded joint positions a, b and leg offsets l0")
     assert report["upload"]["record"]["params_sha256"][:12] in summary[8]
     noise_um = report["physics"]["noise_mm"] * 1000  # the demo machine has no physics beyond the geometry
     assert summary[9] == f"physics: nothing beyond the geometry (noise yardstick {noise_um:.1f} µm)"
-    assert summary[10] == "verdict pass (4 limits, iso14253-1 decision rule)"
+    assert summary[10] == "verdict pass (4 limits, ISO 14253-1 decision rule)"
     assert summary[11] == f"report {tmp / 'run' / 'report.html'} (and report.json)"
     assert summary[12].startswith(f"certificate {tmp / 'run' / 'certificate.'}") and len(summary) == 13
 
@@ -180,9 +180,10 @@ def test_a_limit_the_demo_machine_cannot_meet_fails(strict: tuple[Path, subproce
     check = cert["limits"][0]
     assert check["decision"] == "fail" and check["value"] - check["U"] > check["limit"] == 0.0005
     assert report["instrument"]["stated_uncertainty_mm"] == pytest.approx(0.004)  # the simulator's default 2 x 0.002
-    assert "simulator" in report["instrument"]["uncertainty_source"]
+    assert "simulated CMM" in report["instrument"]["uncertainty_source"]
     summary = " ".join(done.stdout[done.stdout.index(f"run {report['run_id']}: complete"):].split())
-    assert "verdict fail (1 limit, iso14253-1 decision rule); max_position_mm fail" in summary
+    assert ("verdict fail (1 limit, ISO 14253-1 decision rule); largest position error at the verification poses "
+            "after calibration fail") in summary
 
 
 def test_certificate_command_regenerates_both_files(accepted: tuple[Path, subprocess.CompletedProcess],

@@ -30,7 +30,7 @@ def failed(tmp_path_factory: pytest.TempPathFactory, small_plan: Path) -> tuple[
     (tmp / "sim.toml").write_text(INSTANT_SIM.replace("[controller]\n", f"[controller]\nrepeatability_mm = "
                                                       f"{REPEATABILITY_MM}\nrepeatability_seed = 7\n"))
     done = hilcal("run", "--sim", "--yes", "--operator", OPERATOR, "--acceptance", "iso9283",
-                   "--station", str(tmp / "station.toml"), "--sim-config", str(tmp / "sim.toml"),
+                   "--station", str(tmp / "station.toml"), "--station-timing", "--sim-config", str(tmp / "sim.toml"),
                    "--plan", str(small_plan), "--out", str(tmp / "run"), records=tmp / "records.sqlite")
     return tmp, done
 
@@ -41,7 +41,7 @@ def test_limits_the_machine_cannot_meet_fail_with_exit_code_4(failed: tuple[Path
     tmp, done = failed
     assert done.returncode == 4, done.stdout + done.stderr
     output = done.stdout + done.stderr
-    assert "NOT ACCEPTED" in output and "rp_position_mm fail" in output
+    assert "NOT ACCEPTED" in output and "ISO 9283 position repeatability RP_l at every test pose fail" in output
     report = json.loads((tmp / "run" / "report.json").read_text())
     cert = report["certificate"]
     decisions = {c["key"]: c["decision"] for c in cert["limits"]}

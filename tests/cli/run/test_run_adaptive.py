@@ -54,7 +54,8 @@ def runs(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path) -> dict[s
         env = {**os.environ, "HILCAL_RECORDS": str(tmp / f"{name}.sqlite"), "COLUMNS": "200"}
         procs[name] = subprocess.Popen(
             [sys.executable, "-m", "procedures.cli", "run", "--sim", "--yes", "--adaptive", "--operator", "T",
-             "--sim-config", str(tmp / config), "--station", str(tmp / "station.toml"), "--out", str(tmp / name),
+             "--sim-config", str(tmp / config), "--station", str(tmp / "station.toml"), "--station-timing",
+             "--out", str(tmp / name),
              *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     return {name: (proc.wait(280), proc.stdout.read(), tmp / name) for name, proc in procs.items()}
 

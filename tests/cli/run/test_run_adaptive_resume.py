@@ -48,7 +48,7 @@ def _journal(path: Path) -> tuple[list[list[float]], dict | None, str | None]:
 def _start(tmp: Path, out: Path, run_id: str | None) -> subprocess.Popen[bytes]:
     """A new adaptive run (the default plan as its reference, tests/cli/conftest.py) or a resume of run_id."""
     args = ["--resume", run_id] if run_id else ["--sim", "--adaptive", "--sim-config", str(tmp / "sim.toml"),
-                                                "--station", str(tmp / "station.toml"), "--plan",
+                                                "--station", str(tmp / "station.toml"), "--station-timing", "--plan",
                                                 str(tmp / "plan.json")]
     env = {**os.environ, "HILCAL_RECORDS": str(tmp / f"{out.name}.sqlite")}
     return subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", "--yes", "--operator", "T", "--out",

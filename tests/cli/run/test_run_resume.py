@@ -149,7 +149,8 @@ def _kill_and_resume(tmp_path: Path) -> None:
     before, after = (report["uncertainty"][when]["max_position_mm"] for when in ("before", "after"))
     assert (f"max position (mm) {before['value']:.4f} ± {before['U']:.4f} {after['value']:.4f} ± {after['U']:.4f}"
             in summary)
-    assert "uploaded mode full" in summary and "verdict no acceptance limits set" in summary
+    assert "uploaded joint positions a, b and leg offsets l0" in summary
+    assert "verdict no acceptance limits set" in summary
     uploaded = report["compensation"]["uploaded_parameters"]
     new = np.concatenate([np.ravel(uploaded["a_mm"]), np.ravel(uploaded["b_mm"]), uploaded["l0_mm"]])
     assert report["compensation"]["compensation_block"]["scale_ppm"][0] == pytest.approx(-400 / 1.0004, abs=15)
