@@ -256,7 +256,7 @@ def signoff_section(ctx: SignoffContext, robot: Robot, plan: Any, result: Any, p
         "operator": ctx.operator,
         "station": {"name": ctx.settings.name or ("simulated station" if ctx.sim else None),
                     "file": ctx.settings.station_file, "simulated": ctx.sim},
-        "machine": {"robot_name": robot.name, "robot_file": ctx.robot_path or "<built-in paper_table1>",
+        "machine": {"robot_name": robot.name, "robot_file": ctx.robot_path or "the built-in paper Table 1 robot",
                     "serial": ctx.settings.machine_serial},
         "software": software_info(),
         "instrument": instrument,

@@ -50,9 +50,11 @@ class SimStartError(RuntimeError):
 
 
 def _describe(channels: dict[str, Any], handle: SimHandle) -> str:
+    rig = handle.config.rig
+    simulation = channels.get("simulation") or simulation_summary(handle.config, handle.robot)
     lines = [
-        *channels["simulation"]["lines"],
-        f"hilcal simulator: controller protocol {channels['controller']['protocol']}",
+        f"hilcal simulator: robot {channels['robot']}, errors {rig.errors}, seed {rig.seed}, "
+        f"controller protocol {channels['controller']['protocol']}",
         f"  CAN (SLCAN)   {channels['can']['channel']}   "
         f"(can.Bus(interface='slcan', channel='{channels['can']['channel']}', sleep_after_open=0))",
     ]
@@ -82,7 +84,7 @@ def _describe(channels: dict[str, Any], handle: SimHandle) -> str:
     if channels["state_file"]:
         restored = "restored" if handle.restored else "new"
         lines.append(f"  state file    {channels['state_file']} ({restored})")
-    lines.append("Ctrl-C (SIGINT) or SIGTERM stops the simulator.")
+    lines += [*simulation["lines"], "Ctrl-C (SIGINT) or SIGTERM stops the simulator."]
     return "\n".join(lines)
 
 

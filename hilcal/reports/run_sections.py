@@ -77,13 +77,14 @@ def figures_table(rows: list[tuple[str, Mapping[str, Any] | None]]) -> str:
 
 def plausibility_html(plausibility: Mapping[str, Any]) -> str:
     """The check that guards the upload, explained: its bounds and, for a set beyond them, why it was refused."""
-    joint, offset = (f"{v:g}" if isinstance(v, int | float) else _esc(v) for v in (
-        plausibility.get("joint_bound_mm"), plausibility.get("offset_bound_mm")))
+    joint, offset = plausibility.get("joint_bound_mm"), plausibility.get("offset_bound_mm")
+    bounds = "within the bounds a machine's assembly allows"
+    if isinstance(joint, int | float) and isinstance(offset, int | float):
+        bounds = (f"one a machine's assembly can have: each joint within {joint:g} mm of its nominal position and each "
+                  f"leg's length offset within {offset:g} mm")
     rule = (f"An identified set is plausible when it converged, every parameter is determined and every correction "
-            f"is one a machine's assembly can have: each joint within {joint} mm of its nominal position and "
-            f"each leg's length offset within {offset} mm. A larger correction means a wrong robot file or a "
-            "gross fault (a wrongly wired transducer, a loose joint), and the run does not upload it unless told to "
-            "(--force).")
+            f"is {bounds}. A larger correction means a wrong robot file or a gross fault (a wrongly wired transducer, "
+            "a loose joint), and the run does not upload it unless told to (--force).")
     if plausibility.get("ok"):
         return f"<p><b>Plausible</b>: the identified corrections are within these bounds. {rule}</p>"
     violations = "".join(f"<li>{_esc(v)}</li>" for v in plausibility.get("violations", []))

@@ -302,6 +302,7 @@ def upload(
     out.print(format_diff(result["diff"]), highlight=False)
     record = result["record"] or {}
     out.print(f"outcome: {record.get('outcome', 'unchanged')}; sha256 {result['file_sha256'][:16]}")
+    out.print(_machine_words(identity, station), highlight=False, markup=False, soft_wrap=True)
 
 
 def rollback(
@@ -327,3 +328,10 @@ def rollback(
     finally:
         client.close()
     out.print(f"rollback: {record.get('outcome')}")
+    out.print(_machine_words(identity, station), highlight=False, markup=False, soft_wrap=True)
+
+
+def _machine_words(identity: dict[str, str | None], station: Path) -> str:
+    """The machine an upload or rollback was recorded for, and from which station file."""
+    machine = identity.get("machine") or "no machine (the station file's robot could not be read)"
+    return f"recorded for machine {machine}, station {identity.get('station') or station} (station file {station})"

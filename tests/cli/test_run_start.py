@@ -96,3 +96,13 @@ def test_a_simulated_runs_temperatures_are_stated_over_the_simulated_machines_ti
     assert _environment(resumed, {"time_scale": 100.0})["measurements_span_s"] == pytest.approx(229.0 - gap)
     real = _environment(rows, None)
     assert real["machine_span_s"] == pytest.approx(229.0) and "simulated" not in real["note"]
+
+
+def test_a_resume_looks_in_runs_by_default(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(app, ["run", "--resume", "20260101T000000Z-abcdef"], env={"COLUMNS": "200"})
+    said = " ".join(result.output.split())
+    assert result.exit_code == 2, said
+    assert ("cannot resume 20260101T000000Z-abcdef: runs/20260101T000000Z-abcdef holds no run journal "
+            "(journal.sqlite); give --out with the run's folder") in said
+    assert not (tmp_path / "runs").exists()  # looking made nothing
