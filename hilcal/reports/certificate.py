@@ -34,6 +34,7 @@ border-top:.6pt solid #111;padding-top:1mm}code{font-size:7.4pt;word-break:break
 table.iso td,table.iso th{font-size:7.5pt;padding:.4mm .9mm}
 @media screen{body{margin:8mm auto;padding:0 6mm}}"""
 
+ESTIMATORS = {"ls": "least-squares", "linf": "L-infinity (minimax)"}
 DECISION_CLASS = {"pass": "pass", "fail": "fail", "not proven": "notproven", "not tested": "notproven"}
 
 
@@ -219,6 +220,7 @@ def certificate_html(report: Mapping[str, Any]) -> str:
         + (f": {_esc(env['note'])}" if env.get("note") else ""))
     due = _esc(inst.get("calibration_due")) + (" – <b>OVERDUE</b>" if inst.get("overdue") else "")
     warn = "".join(f"<div class='warn'>{_esc(w)}</div>" for w in warnings)
+    estimator = _esc(ESTIMATORS.get(str(method.get("estimator")), method.get("estimator")))
     return f"""<!doctype html><html lang="en"><head><meta charset="utf-8">
 <title>Calibration certificate {_esc(cert.get('number'))}</title><style>{_CSS}</style></head><body>
 <header><div><h1>Calibration certificate</h1><div class="small">Kinematic calibration of a 6-6 Gough/Stewart
@@ -238,8 +240,8 @@ platform, hardware in the loop (hilcal)</div></div>
     ("temperature", temperature),
     ("method", f"{_esc(method.get('model'))}-parameter rigid geometric model"
                + (f" with {_esc(', '.join(method['effects']))} compensated in the controller"
-                  if method.get("effects") else "") + f", {_esc(method.get('estimator'))} "
-               f"estimator; {_esc(method.get('n_measure_rows'))} measurement rows, "
+                  if method.get("effects") else "") + f", {estimator} estimator; "
+               f"{_esc(method.get('n_measure_rows'))} measurement rows, "
                f"{_esc(method.get('n_verify_poses'))} held-out verification poses"),
     ("measurement plan", _plan(method)),
     ("pose plan SHA-256", f"<code>{_esc(method.get('plan_sha256'))}</code>"),

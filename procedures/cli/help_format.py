@@ -51,7 +51,7 @@ def _option(param: Any, ctx: typer.Context) -> Group | None:
     body = Text.from_markup(help_text) if help_text else Text()
     if extras:
         body.append(("  " if help_text else "") + extras, style="dim")
-    return Group(Text("  " + names, style="bold"), Padding(body, (0, 0, 0, INDENT)))
+    return Group(Text("  " + names, style="bold"), Padding(body, (0, 0, 0, INDENT), expand=False))
 
 
 def _commands(group: TyperGroup, ctx: typer.Context) -> Table:
