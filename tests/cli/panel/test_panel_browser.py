@@ -111,7 +111,7 @@ def test_a_whole_run_driven_from_the_browser_alone(tmp_path, instant_plan):
         assert {a["key"] for a in answers} == {"start", "spheres", "area", "upload"}
         records = sqlite3.connect(tmp_path / "records.sqlite")
         assert records.execute("SELECT operator, status FROM runs").fetchall() == [("B. Rowser", "complete")]
-        assert records.execute("SELECT operator FROM uploads").fetchall() == [("B. Rowser",)]
+        assert records.execute("SELECT operator FROM uploads").fetchall() == [("B. Rowser",)] * 2  # upload, save
     finally:
         if proc is not None:
             stop(proc)
