@@ -10,7 +10,6 @@ the refitted geometry with metres of opposite corrections).
 from __future__ import annotations
 
 import dataclasses
-import itertools
 from collections.abc import Callable
 
 import numpy as np
@@ -20,7 +19,7 @@ from scipy.optimize import lsq_linear
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.noise import NoiseEstimate, find_repeats
 from hilcal.discovery.regression import cluster_robust_covariance, pooled_whitener, whiten
-from hilcal.discovery.selection import ModelState
+from hilcal.discovery.selection import Columns, ModelState
 from hilcal.discovery.term_groups import GENERIC, TermGroup
 from hilcal.error_models import GEOMETRIC_42, implicit_residuals
 from hilcal.identification import IdentificationResult, residual_function
@@ -413,16 +412,18 @@ def model_state(p: Problem, fit: IdentificationResult, groups: list[TermGroup]) 
 
 def group_columns(p: Problem, state: ModelState, d_dl0: np.ndarray, group: TermGroup) -> np.ndarray:
     """A candidate group's whitened Jacobian columns at the current model."""
-    return groups_columns(p, state, d_dl0, [group])[0]
+    return groups_columns(p, state, d_dl0, [group]).block
 
 
-def groups_columns(p: Problem, state: ModelState, d_dl0: np.ndarray, groups: list[TermGroup]) -> list[np.ndarray]:
-    """`group_columns` of many groups in one product: the whitener and d(residual)/d(dl0) act on every column
-    of a pose alike, so their product is formed once and applied to all the groups' regressors together."""
-    if not groups:
-        return []
-    whitened_d = np.einsum("ij,njl->nil", state.W, d_dl0)
+def groups_columns(p: Problem, state: ModelState, d_dl0: np.ndarray, groups: list[TermGroup]) -> Columns:
+    """`group_columns` of many groups in one product, as one block laid out by width (`selection.Columns`): the
+    whitener and d(residual)/d(dl0) act on every column of a pose alike, so their product is formed once and applied
+    to all the groups' regressors together."""
     phis = [p.phi(g) for g in groups]
-    cols = whitened_d @ np.concatenate(phis, axis=2)
-    bounds = np.cumsum([0] + [ph.shape[2] for ph in phis])
-    return [cols[:, :, a:b].reshape(6 * p.mea.n, -1) for a, b in itertools.pairwise(bounds)]
+    widths = np.array([ph.shape[2] for ph in phis], dtype=int)
+    order = Columns.layout(widths)
+    if not groups:
+        return Columns(np.zeros((6 * p.mea.n, 0)), widths, order)
+    whitened_d = np.einsum("ij,njl->nil", state.W, d_dl0)
+    cols = whitened_d @ np.concatenate([phis[k] for k in order.tolist()], axis=2)
+    return Columns(cols.reshape(6 * p.mea.n, -1), widths, order)

@@ -49,7 +49,6 @@ from hilcal.discovery.fitting import (
     final_covariance,
     final_fit,
     fit_model,
-    group_columns,
     groups_columns,
     judged_verify_mm,
     leg_residuals,
@@ -151,7 +150,7 @@ def _drop_test(p: Problem, chosen: list[TermGroup], group: TermGroup, alpha: flo
     """The test of a chosen group given all the others (None when the others absorb it)."""
     others = [g for g in chosen if g is not group]
     state, d_dl0 = model_state(p, fit_model(p, others, start), others)
-    tests = assess(state, [group], [group_columns(p, state, d_dl0, group)], alpha, n_boot, seed)
+    tests = assess(state, [group], groups_columns(p, state, d_dl0, [group]), alpha, n_boot, seed)
     return tests[0] if tests else None
 
 
