@@ -34,6 +34,10 @@ log = structlog.get_logger(__name__)
 
 N_GEO = 42
 DL0_COLUMNS = [7 * i + 6 for i in range(6)]
+CACHED = 8
+"""Entries per cache of a Problem: a search step asks again only for the last few models."""
+MANY_GROUPS = 50
+"""A candidate list this long is the search's (its regressors are kept as one block, `Problem.phi_columns`)."""
 
 
 @dataclasses.dataclass
@@ -55,6 +59,36 @@ class Problem:
     the size the data shows. Without a noise level, each fit takes its start's residual RMS."""
     not_converged: list[str] = dataclasses.field(default_factory=list)
     """Fits that stopped before converging (named in the answer)."""
+    linearized: dict[tuple, tuple[np.ndarray, np.ndarray]] = dataclasses.field(default_factory=dict)
+    """(r, J) of the measure rows at a fit's solution, by (parameter names, x): what the fit's last step computed,
+    so that the model's linearization (`model_state`) need not compute it again."""
+    states: dict[tuple, tuple[ModelState, np.ndarray]] = dataclasses.field(default_factory=dict)
+    """`model_state` by (parameter names, x): the search asks for the same model's state more than once."""
+    fits: dict[tuple, IdentificationResult] = dataclasses.field(default_factory=dict)
+    """`fit_model` by (groups, start, prior, label): a refit from a model's own solution is asked for again."""
+    phi_block: tuple[np.ndarray, dict[str, tuple[int, int]]] | None = None
+    """The regressors of the first long candidate list, concatenated in their width order, with each group's
+    columns: the search's later lists are subsets of it, taken in one gather instead of concatenated again."""
+
+    def phi_columns(self, groups: list[TermGroup], order: np.ndarray) -> np.ndarray:
+        """[N, 6, total] the groups' regressors concatenated in `order` (the same numbers as concatenating them)."""
+        ranges = self.phi_block[1] if self.phi_block is not None else {}
+        ordered = [groups[k] for k in order.tolist()]
+        if len(groups) < MANY_GROUPS or not all(g.key in ranges for g in ordered):
+            block = np.concatenate([self.phi(g) for g in ordered], axis=2)
+            if len(groups) >= MANY_GROUPS:
+                starts = np.cumsum([0] + [self.phi(g).shape[2] for g in ordered])
+                self.phi_block = (block, {g.key: (int(a), int(b)) for g, a, b in zip(ordered, starts[:-1], starts[1:],
+                                                                                      strict=True)})
+            return block
+        columns = np.concatenate([np.arange(*ranges[g.key]) for g in ordered])
+        return np.take(self.phi_block[0], columns, axis=2)
+
+    def remember(self, cache: dict, key: tuple, value: object) -> None:
+        """Keep value under key, with at most CACHED entries (the oldest goes first)."""
+        if len(cache) >= CACHED:
+            cache.pop(next(iter(cache)))
+        cache[key] = value
 
     @classmethod
     def of(cls, rec: Recording, robot: Robot, ctx_all: EffectContext | None = None) -> Problem:
@@ -106,14 +140,14 @@ data cannot see get no step (minimum-norm steps), so a fit never drifts along th
 
 def gauss_newton(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0: np.ndarray,
                  max_iter: int | None = None, bounds: tuple[np.ndarray, np.ndarray] | None = None,
-                 ) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
+                 ) -> tuple[np.ndarray, np.ndarray, int, bool, str, np.ndarray]:
     """Least squares by Gauss-Newton with minimum-norm steps on the column-scaled Jacobian and step shortening.
 
     The diagnosis' models are linear in every effect parameter and nearly linear in the small geometric errors,
     so from a warm start a few steps reach the minimum; a Levenberg-Marquardt search with a trust region crawled for
     hundreds of evaluations along directions the poses hardly see (benchmarks/bench_diagnose.py). With `bounds`
     (x0 inside them), a step that would leave them is the bounded linear least-squares step instead.
-    Returns (x, residuals, evaluations, converged, message)."""
+    Returns (x, residuals, evaluations, converged, message, Jacobian at x)."""
     max_iter = GN_ITERATIONS if max_iter is None else max_iter
     x = np.asarray(x0, dtype=float).copy()
     r, J = fun(x)
@@ -127,7 +161,7 @@ def gauss_newton(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0:
             d = lsq_linear(J / c, -r, bounds=((bounds[0] - x) * c, (bounds[1] - x) * c), method="bvls").x / c
         predicted = float(np.sum((J @ d) ** 2))
         if predicted <= GN_TOLERANCE * cost:
-            return x, r, evaluations, True, "Gauss-Newton: the next step gains nothing"
+            return x, r, evaluations, True, "Gauss-Newton: the next step gains nothing", J
         t = 1.0
         while True:
             try:
@@ -140,9 +174,9 @@ def gauss_newton(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0:
                 break
             t *= 0.25
             if t < 1e-6:
-                return x, r, evaluations, True, "Gauss-Newton: no step lowers the sum of squares"
+                return x, r, evaluations, True, "Gauss-Newton: no step lowers the sum of squares", J
         x, r, J, cost = x + t * d, r_new, J_new, new_cost
-    return x, r, evaluations, False, f"Gauss-Newton stopped after {max_iter} steps"
+    return x, r, evaluations, False, f"Gauss-Newton stopped after {max_iter} steps", J
 
 
 def prior_rows(p: Problem, groups: list[TermGroup], shape_scale_mm: np.ndarray, noise_mm: float) -> np.ndarray:
@@ -168,8 +202,14 @@ def fit_model(p: Problem, groups: list[TermGroup], start: IdentificationResult |
               label: str = "") -> IdentificationResult:
     """Least squares of geometry + groups on the measure rows (Gauss-Newton), warm-started from `start` when
     given, else from the nominal geometry; generic shapes are held by the problem's shape prior when it is set
-    (a shape and the geometry can otherwise trade against each other far along a valley the poses hardly see)."""
+    (a shape and the geometry can otherwise trade against each other far along a valley the poses hardly see).
+    The same fit asked for again (same groups, start and prior) is the one made before."""
     names = GEOMETRIC_42.names + names_of(groups)
+    x0 = _start(groups, start)
+    prior = None if p.shape_prior is None else (np.asarray(p.shape_prior[0]).tobytes(), p.shape_prior[1])
+    key = (names, None if x0 is None else x0.tobytes(), prior, label, None if start is None else start.rms_residual)
+    if key in p.fits:
+        return p.fits[key]
     data = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
     P = np.zeros((0, len(names)))
     if p.shape_prior is not None:
@@ -182,7 +222,6 @@ def fit_model(p: Problem, groups: list[TermGroup], start: IdentificationResult |
         r, J = data(x)
         return (np.concatenate([r, P @ x]), np.concatenate([J, P])) if P.size else (r, J)
 
-    x0 = _start(groups, start)
     result = None
     if x0 is not None:
         try:
@@ -191,20 +230,23 @@ def fit_model(p: Problem, groups: list[TermGroup], start: IdentificationResult |
             result = None
     if result is None or not result[3]:
         result = gauss_newton(fun, np.zeros(len(names)))
-    x, r, evaluations, converged, message = result
+    x, r, evaluations, converged, message, J = result
     r = r[:6 * p.mea.n]
+    p.remember(p.linearized, (names, x.tobytes()), (r, J[:6 * p.mea.n]))
     if not converged:
         name = label or ("geometry" if not groups else "geometry + " + ", ".join(g.key for g in groups))
         if name not in p.not_converged:
             p.not_converged.append(name)
         log.warning("fit_not_converged", model=name, evaluations=evaluations, message=message)
     rms = float(np.sqrt(np.mean(r**2)))
-    return IdentificationResult(
+    fit = IdentificationResult(
         x=x, names=names, model=GEOMETRIC_42.key, estimator="ls", formulation="forward", method="gauss-newton",
         residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))), rms_residual=rms,
         sigma=float(np.sqrt(r @ r / max(r.size - len(names), 1))), std_errors=None, covariance=None,
         rank=len(names), n_iterations=evaluations, converged=converged, message=message, length_mm=p.length_mm,
     )
+    p.remember(p.fits, key, fit)
+    return fit
 
 
 def _bounds(groups: list[TermGroup], size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -259,7 +301,7 @@ def final_fit(p: Problem, groups: list[TermGroup], start: IdentificationResult, 
     if not np.all(np.isfinite(residuals(x0)[0])):
         p.not_converged.append("final model (bounded, shapes held to the data)")
         return fit
-    x, _, _, converged, message = gauss_newton(residuals, x0, bounds=(lo, hi))
+    x, _, _, converged, message, _ = gauss_newton(residuals, x0, bounds=(lo, hi))
     if not converged:
         p.not_converged.append("final model (bounded, shapes held to the data)")
     r = fun(x)[0]
@@ -402,12 +444,19 @@ def mean_residual_variance(p: Problem, fit: IdentificationResult, groups: list[T
 
 def model_state(p: Problem, fit: IdentificationResult, groups: list[TermGroup]) -> tuple[ModelState, np.ndarray]:
     """The model linearized and whitened at its fit, and d(residual)/d(dl0) per leg for new groups' columns."""
-    fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
-    r, J = fun(fit.x)
+    key = (GEOMETRIC_42.names + names_of(groups), fit.x.tobytes())
+    if key in p.states:
+        return p.states[key]
+    linearized = p.linearized.get(key)
+    if linearized is None:
+        fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
+        linearized = fun(fit.x)
+    r, J = linearized
     n = p.mea.n
     W = pooled_whitener(r, J, n)
     state = ModelState.build(whiten(r, W, n), whiten(J, W, n), W, n, p.clusters)
-    return state, J.reshape(n, 6, -1)[:, :, DL0_COLUMNS]
+    p.remember(p.states, key, (state, J.reshape(n, 6, -1)[:, :, DL0_COLUMNS]))
+    return p.states[key]
 
 
 def group_columns(p: Problem, state: ModelState, d_dl0: np.ndarray, group: TermGroup) -> np.ndarray:
@@ -425,5 +474,5 @@ def groups_columns(p: Problem, state: ModelState, d_dl0: np.ndarray, groups: lis
     if not groups:
         return Columns(np.zeros((6 * p.mea.n, 0)), widths, order)
     whitened_d = np.einsum("ij,njl->nil", state.W, d_dl0)
-    cols = whitened_d @ np.concatenate([phis[k] for k in order.tolist()], axis=2)
+    cols = whitened_d @ p.phi_columns(groups, order)
     return Columns(cols.reshape(6 * p.mea.n, -1), widths, order)

@@ -230,9 +230,10 @@ def _bases(Q: np.ndarray, dof: int, columns: Columns) -> _Kept | None:
     col2 = np.einsum("ij,ij->j", Xt_all, Xt_all)
     m = X_all.shape[0]
     index: list[np.ndarray] = []
-    pieces: list[np.ndarray] = []
-    """Bases, [6N, rank] each or [groups, 6N, width] for a class's eigen-decomposed groups."""
     starts: list[np.ndarray] = []
+    rank_list: list[int] = []
+    made: list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None, list[np.ndarray]]] = []
+    """Per width class: (width, scaled columns, eigen-decomposed groups, their V / sqrt(lambda), other bases)."""
     first_column, first_group = 0, 0
     for width in np.unique(widths).tolist():
         n = int(np.sum(widths == width))
@@ -255,32 +256,41 @@ def _bases(Q: np.ndarray, dof: int, columns: Columns) -> _Kept | None:
         full = adds & (rank == width) & all_columns & (s[:, -1] > s[:, 0] * 1e-4)
         svd = adds & ~full & all_columns
         rest = adds & ~full & ~all_columns
-        if full.any():
-            pieces.append(scaled[full] @ (V[full] / np.sqrt(lam[full])[:, None, :]))
+        bases: list[np.ndarray] = []
         if svd.any():
             U, sv, _ = np.linalg.svd(scaled[svd], full_matrices=False)
-            pieces += [u[:, values > values[0] * RANK_TOL] for u, values in zip(U, sv, strict=True)]
-        pieces += [orth(Xt[j], RANK_TOL) for j in np.flatnonzero(rest).tolist()]
+            bases += [u[:, values > values[0] * RANK_TOL] for u, values in zip(U, sv, strict=True)]
+        bases += [orth(Xt[j], RANK_TOL) for j in np.flatnonzero(rest).tolist()]
+        made.append((width, scaled, full, V[full] / np.sqrt(lam[full])[:, None, :] if full.any() else None, bases))
+        rank_list += [width] * int(full.sum()) + [b.shape[1] for b in bases]
         for which in (full, svd, rest):
             index.append(idx[which])
             starts.append(class_starts[which])
-    if not pieces:
+    if not rank_list:
         return None
-    ranks = np.concatenate([np.full(b.shape[0], b.shape[2]) if b.ndim == 3 else [b.shape[1]] for b in pieces])
+    ranks = np.array(rank_list, dtype=int)
     offsets = np.concatenate([[0], np.cumsum(ranks)[:-1]]).astype(int)
     Q_all = np.empty((m, int(ranks.sum())))
-    k = 0
-    for b in pieces:
-        if b.ndim == 3:
-            Q_all[:, offsets[k]:offsets[k] + b.shape[0] * b.shape[2]].reshape(m, b.shape[0], b.shape[2])[...] = (
-                np.swapaxes(b, 0, 1))
-            k += b.shape[0]
-        else:
-            Q_all[:, offsets[k]:offsets[k] + b.shape[1]] = b
-            k += 1
+    column = 0
+    for width, scaled, full, M, bases in made:
+        done = 0
+        for a, b in _runs(full):
+            # Qk = Xs V / sqrt(lambda), written in place: each group's product is the one a gathered copy would give.
+            np.matmul(scaled[a:b], M[done:done + b - a],
+                      out=Q_all[:, column:column + (b - a) * width].reshape(m, b - a, width).transpose(1, 0, 2))
+            column, done = column + (b - a) * width, done + b - a
+        for basis in bases:
+            Q_all[:, column:column + basis.shape[1]] = basis
+            column += basis.shape[1]
     index_all = np.concatenate(index).astype(int)
-    return _Kept(index_all, ranks.astype(int), offsets, Q_all, Xt_all, np.concatenate(starts).astype(int),
+    return _Kept(index_all, ranks, offsets, Q_all, Xt_all, np.concatenate(starts).astype(int),
                  columns.widths[index_all])
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[(start, end)] of the runs of True in a boolean mask."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
 
 
 THREADS = 2
