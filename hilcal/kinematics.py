@@ -115,6 +115,26 @@ def scaled_condition(J: np.ndarray, length_mm: float) -> np.ndarray:
         return s[..., 0] / s[..., -1]
 
 
+def _singular_rows(J: np.ndarray, length_mm: float, max_condition: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of J [N, 6, 6] whose `scaled_condition` is not below max_condition, and their condition numbers.
+
+    The singular values are computed only where a cheap bound does not already clear the pose: the condition number
+    is at most |Js|_F |Js^-1|_F (Frobenius norms), and a pose whose bound is below half the limit is well inside it."""
+    Js = J.copy()
+    Js[..., 3:] /= length_mm
+    try:
+        with np.errstate(all="ignore"):
+            bound = np.sqrt(np.sum(Js**2, axis=(1, 2)) * np.sum(np.linalg.inv(Js) ** 2, axis=(1, 2)))
+    except np.linalg.LinAlgError:
+        bound = np.full(len(J), np.inf)
+    check = np.flatnonzero(~(bound < 0.5 * max_condition))
+    if not check.size:
+        return check, np.zeros(0)
+    cond = scaled_condition(J[check], length_mm)
+    bad = ~(cond < max_condition)
+    return check[bad], cond[bad]
+
+
 def _characteristic_length(geom: Geometry) -> float:
     a = geom.a - geom.a.mean(axis=0)
     return float(np.sqrt(np.mean(np.sum(a**2, axis=1))))
@@ -168,12 +188,11 @@ def forward_kinematics(
             bad,
         )
     R = rotation_matrix(q[:, 3:])
-    cond = scaled_condition(inverse_jacobian(geom, R, q[:, :3]), _characteristic_length(geom))
-    singular = np.flatnonzero(~(cond < max_condition))
+    singular, cond = _singular_rows(inverse_jacobian(geom, R, q[:, :3]), _characteristic_length(geom), max_condition)
     if singular.size:
         raise SingularPoseError(
             f"{singular.size} pose(s) near a singularity (rows {singular[:10].tolist()}, "
-            f"condition {cond[singular[0]]:.3g} > {max_condition:.3g}): the pose is not determined by the legs",
+            f"condition {cond[0]:.3g} > {max_condition:.3g}): the pose is not determined by the legs",
             singular,
         )
     q[:, 3:] = np.degrees(q[:, 3:])

@@ -52,7 +52,7 @@ class Problem:
     mea: Recording
     ver: Recording
     clusters: np.ndarray
-    phi_cache: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    phi_cache: dict[str | tuple[str, str], np.ndarray] = dataclasses.field(default_factory=dict)
     shape_prior: tuple[np.ndarray, float | None] | None = None
     """(per-leg scale in mm, noise per residual component in mm or None) of the generic shapes' Gaussian prior
     (`prior_rows`), once the geometry-only fit has set it: every fit with a generic group then holds the shapes to
@@ -113,6 +113,13 @@ class Problem:
         if group.key not in self.phi_cache:
             self.phi_cache[group.key] = group.phi(self.ctx)
         return self.phi_cache[group.key]
+
+    def phi_all(self, groups: list[TermGroup]) -> np.ndarray:
+        """[N, 6, q] the groups' regressors on every row of the recording (each group's computed once)."""
+        for g in groups:
+            if ("all", g.key) not in self.phi_cache:
+                self.phi_cache[("all", g.key)] = g.phi(self.ctx_all)
+        return np.concatenate([self.phi_cache[("all", g.key)] for g in groups], axis=2)
 
     def phi_of(self, groups: list[TermGroup]) -> np.ndarray | None:
         return np.concatenate([self.phi(g) for g in groups], axis=2) if groups else None
@@ -317,11 +324,11 @@ def final_covariance(p: Problem, final: IdentificationResult, groups: list[TermG
     unexplained shapes are the generic groups; the inflation is summarised over the library effects' parameters, or
     the geometry's without any); without one, the cluster-robust sandwich of the fitted residuals."""
     stations = p.mea.stations
-    r, J = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups),
-                             stations)(final.x)
+    r, J = linearized(p, groups, final.x) if stations is None else residual_function(
+        p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups), stations)(final.x)
     if noise is None:
         return cluster_robust_covariance(J, r, p.mea.n), None
-    raw = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))(final.x)[1]
+    raw = linearized(p, groups, final.x)[1]
     frames = None if stations is None else StationFrames.of(stations, p.mea.meas, p.length_mm, p.robot.home[:3])
     shapes, stated, k = [], [], N_GEO
     for g in groups:
@@ -404,7 +411,7 @@ def leg_residuals(p: Problem, fit: IdentificationResult, groups: list[TermGroup]
     """Per-leg length residuals (mm) of every row: length implied by the measured pose minus the modelled length."""
     legs = p.rec.legs_mm
     if groups:
-        legs = legs + np.concatenate([g.phi(p.ctx_all) for g in groups], axis=2) @ fit.x[N_GEO:]
+        legs = legs + p.phi_all(groups) @ fit.x[N_GEO:]
     return implicit_residuals(fit.geometry(p.robot), legs, p.rec.meas)
 
 
@@ -418,6 +425,8 @@ def mean_residual_variance(p: Problem, fit: IdentificationResult, groups: list[T
     frames = None if stations is None else StationFrames.of(stations, p.mea.meas, p.length_mm, p.robot.home[:3])
     fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
     row_stations = None if frames is None or p.rec.stations is None else p.rec.stations[rows]
+    phi_rows = (np.concatenate([g.phi(p.ctx_all.rows(rows)) for g in groups], axis=2)
+                if row_stations is not None and groups else None)
 
     def mean(x: np.ndarray) -> np.ndarray:
         moved = dataclasses.replace(fit, x=x)
@@ -426,8 +435,8 @@ def mean_residual_variance(p: Problem, fit: IdentificationResult, groups: list[T
             meas = remove_frames(p.rec.meas[rows], row_stations, frames.estimate(fun(x)[0]), p.length_mm,
                                  p.robot.home[:3])
             legs = p.rec.legs_mm[rows]
-            if groups:
-                legs = legs + np.concatenate([g.phi(p.ctx_all.rows(rows)) for g in groups], axis=2) @ x[N_GEO:]
+            if phi_rows is not None:
+                legs = legs + phi_rows @ x[N_GEO:]
             res = implicit_residuals(moved.geometry(p.robot), legs, meas)
         return res.mean(axis=0)
 
@@ -442,16 +451,22 @@ def mean_residual_variance(p: Problem, fit: IdentificationResult, groups: list[T
     return np.einsum("ij,jk,ik->i", G, cov, G)
 
 
+def linearized(p: Problem, groups: list[TermGroup], x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(r, J) of the measure rows (forward residuals of geometry + groups, no instrument stations) at x: the fit's last
+    evaluation when x is a fit's solution, else computed (and kept)."""
+    key = (GEOMETRIC_42.names + names_of(groups), x.tobytes())
+    if key not in p.linearized:
+        fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
+        p.remember(p.linearized, key, fun(x))
+    return p.linearized[key]
+
+
 def model_state(p: Problem, fit: IdentificationResult, groups: list[TermGroup]) -> tuple[ModelState, np.ndarray]:
     """The model linearized and whitened at its fit, and d(residual)/d(dl0) per leg for new groups' columns."""
     key = (GEOMETRIC_42.names + names_of(groups), fit.x.tobytes())
     if key in p.states:
         return p.states[key]
-    linearized = p.linearized.get(key)
-    if linearized is None:
-        fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
-        linearized = fun(fit.x)
-    r, J = linearized
+    r, J = linearized(p, groups, fit.x)
     n = p.mea.n
     W = pooled_whitener(r, J, n)
     state = ModelState.build(whiten(r, W, n), whiten(J, W, n), W, n, p.clusters)

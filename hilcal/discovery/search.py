@@ -52,6 +52,7 @@ from hilcal.discovery.fitting import (
     groups_columns,
     judged_verify_mm,
     leg_residuals,
+    linearized,
     mean_residual_variance,
     model_state,
     predict,
@@ -78,7 +79,7 @@ from hilcal.discovery.shapes import shapes_for
 from hilcal.discovery.stations import with_stations
 from hilcal.discovery.term_groups import GENERIC, LIBRARY, TermGroup, stack_phi
 from hilcal.error_models import pose_difference
-from hilcal.identification import IdentificationResult, residual_function
+from hilcal.identification import IdentificationResult
 from hilcal.kinematics import forward_kinematics
 from hilcal.recording import Recording
 from hilcal.robot import Robot
@@ -471,15 +472,14 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
     cv_final = _cv_mm(p, chosen, sel.fit) if chosen else s.cv_geometry
     scales, noise_mm = p.shape_prior[0], max(sel.fit.rms_residual, 1e-6)
     final = final_fit(p, chosen, sel.fit if chosen else geo, scales, noise_mm)
-    r_final, J_final = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm,
-                                         p.phi_of(chosen))(final.x)
+    r_final, J_final = linearized(p, chosen, final.x)
     cov, misfit = final_covariance(p, final, chosen, noise.chosen, scales, noise_mm)
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     final = dataclasses.replace(final, covariance=cov, std_errors=se)
     before = verify_accuracy(p, geo, [])
     after = verify_accuracy(p, final, chosen)
 
-    r_geo, J_geo = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm)(geo.x)
+    r_geo, J_geo = linearized(p, [], geo.x)
     ratio = None
     if noise.chosen is not None:
         ratio = noise_comparison(p.robot, p.mea.meas, noise.chosen.covariance[p.measure], (r_geo, J_geo),
