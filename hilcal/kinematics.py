@@ -58,10 +58,16 @@ def split_pose(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def leg_vectors(geom: Geometry, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Leg vectors R a_i + t - b_i [..., 6, 3], their lengths [..., 6] and unit directions [..., 6, 3]."""
+    _, v, length = leg_geometry(geom, R, t)
+    return v, length, v / length[..., None]
+
+
+def leg_geometry(geom: Geometry, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """R a_i [..., 6, 3], the leg vectors [..., 6, 3] and their lengths [..., 6]: what `leg_vectors` and the
+    Jacobians share (computed once where both are needed)."""
     ra = np.swapaxes(R @ geom.a.T, -1, -2)
     v = ra + t[..., None, :] - geom.b
-    length = np.linalg.norm(v, axis=-1)
-    return v, length, v / length[..., None]
+    return ra, v, np.linalg.norm(v, axis=-1)
 
 
 def inverse_kinematics(geom: Geometry, poses: np.ndarray) -> np.ndarray:
@@ -76,8 +82,8 @@ def inverse_jacobian(geom: Geometry, R: np.ndarray, t: np.ndarray) -> np.ndarray
 
     Row i is [u_i, (R a_i) x u_i]: the classic Stewart-platform inverse Jacobian.
     """
-    _, _, u = leg_vectors(geom, R, t)
-    ra = np.swapaxes(R @ geom.a.T, -1, -2)
+    ra, v, length = leg_geometry(geom, R, t)
+    u = v / length[..., None]
     return np.concatenate([u, np.cross(ra, u)], axis=-1)
 
 
@@ -166,14 +172,15 @@ def forward_kinematics(
             break
         qa = q[idx]
         R = rotation_matrix(qa[:, 3:])
-        _, length, _ = leg_vectors(geom, R, qa[:, :3])
+        ra, v, length = leg_geometry(geom, R, qa[:, :3])
         f = length - target[idx]
         done = np.max(np.abs(f), axis=1) < tol_mm
         active[idx[done]] = False
         if done.all():
             break
-        idx, qa, f, R = idx[~done], qa[~done], f[~done], R[~done]
-        J = inverse_jacobian(geom, R, qa[:, :3])
+        idx, qa, f, ra, v, length = idx[~done], qa[~done], f[~done], ra[~done], v[~done], length[~done]
+        u = v / length[..., None]
+        J = np.concatenate([u, np.cross(ra, u)], axis=-1)  # inverse_jacobian from the legs just measured
         J[:, :, 3:] = J[:, :, 3:] @ rpy_rate_matrix(qa[:, 3:])
         try:
             step = np.linalg.solve(J, -f[..., None])[..., 0]

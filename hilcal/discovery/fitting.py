@@ -10,6 +10,7 @@ the refitted geometry with metres of opposite corrections).
 from __future__ import annotations
 
 import dataclasses
+import threading
 from collections.abc import Callable
 
 import numpy as np
@@ -66,6 +67,7 @@ class Problem:
     """`model_state` by (parameter names, x): the search asks for the same model's state more than once."""
     fits: dict[tuple, IdentificationResult] = dataclasses.field(default_factory=dict)
     """`fit_model` by (groups, start, prior, label): a refit from a model's own solution is asked for again."""
+    lock: threading.Lock = dataclasses.field(default_factory=threading.Lock, repr=False)
     phi_block: tuple[np.ndarray, dict[str, tuple[int, int]]] | None = None
     """The regressors of the first long candidate list, concatenated in their width order, with each group's
     columns: the search's later lists are subsets of it, taken in one gather instead of concatenated again."""
@@ -85,10 +87,12 @@ class Problem:
         return np.take(self.phi_block[0], columns, axis=2)
 
     def remember(self, cache: dict, key: tuple, value: object) -> None:
-        """Keep value under key, with at most CACHED entries (the oldest goes first)."""
-        if len(cache) >= CACHED:
-            cache.pop(next(iter(cache)))
-        cache[key] = value
+        """Keep value under key, with at most CACHED entries (the oldest goes first); read with `get` (the search's
+        drop tests run in two threads)."""
+        with self.lock:
+            if len(cache) >= CACHED:
+                cache.pop(next(iter(cache)))
+            cache[key] = value
 
     @classmethod
     def of(cls, rec: Recording, robot: Robot, ctx_all: EffectContext | None = None) -> Problem:
@@ -215,8 +219,9 @@ def fit_model(p: Problem, groups: list[TermGroup], start: IdentificationResult |
     x0 = _start(groups, start)
     prior = None if p.shape_prior is None else (np.asarray(p.shape_prior[0]).tobytes(), p.shape_prior[1])
     key = (names, None if x0 is None else x0.tobytes(), prior, label, None if start is None else start.rms_residual)
-    if key in p.fits:
-        return p.fits[key]
+    cached = p.fits.get(key)
+    if cached is not None:
+        return cached
     data = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
     P = np.zeros((0, len(names)))
     if p.shape_prior is not None:
@@ -455,23 +460,27 @@ def linearized(p: Problem, groups: list[TermGroup], x: np.ndarray) -> tuple[np.n
     """(r, J) of the measure rows (forward residuals of geometry + groups, no instrument stations) at x: the fit's last
     evaluation when x is a fit's solution, else computed (and kept)."""
     key = (GEOMETRIC_42.names + names_of(groups), x.tobytes())
-    if key not in p.linearized:
+    cached = p.linearized.get(key)
+    if cached is None:
         fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
-        p.remember(p.linearized, key, fun(x))
-    return p.linearized[key]
+        cached = fun(x)
+        p.remember(p.linearized, key, cached)
+    return cached
 
 
 def model_state(p: Problem, fit: IdentificationResult, groups: list[TermGroup]) -> tuple[ModelState, np.ndarray]:
     """The model linearized and whitened at its fit, and d(residual)/d(dl0) per leg for new groups' columns."""
     key = (GEOMETRIC_42.names + names_of(groups), fit.x.tobytes())
-    if key in p.states:
-        return p.states[key]
+    cached = p.states.get(key)
+    if cached is not None:
+        return cached
     r, J = linearized(p, groups, fit.x)
     n = p.mea.n
     W = pooled_whitener(r, J, n)
     state = ModelState.build(whiten(r, W, n), whiten(J, W, n), W, n, p.clusters)
-    p.remember(p.states, key, (state, J.reshape(n, 6, -1)[:, :, DL0_COLUMNS]))
-    return p.states[key]
+    cached = (state, J.reshape(n, 6, -1)[:, :, DL0_COLUMNS])
+    p.remember(p.states, key, cached)
+    return cached
 
 
 def group_columns(p: Problem, state: ModelState, d_dl0: np.ndarray, group: TermGroup) -> np.ndarray:

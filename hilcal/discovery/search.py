@@ -25,6 +25,7 @@ The rule (docs/diagnosis.md):
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -155,6 +156,14 @@ def _drop_test(p: Problem, chosen: list[TermGroup], group: TermGroup, alpha: flo
     return tests[0] if tests else None
 
 
+def _drop_tests(p: Problem, chosen: list[TermGroup], alpha: float, n_boot: int, seed: int,
+                start: IdentificationResult) -> dict[str, GroupTest | None]:
+    """`_drop_test` of every chosen group but the last, two at a time (each is a fit and a test of its own)."""
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        tests = pool.map(lambda g: _drop_test(p, chosen, g, alpha, n_boot, seed, start), chosen[:-1])
+        return dict(zip([g.key for g in chosen[:-1]], tests, strict=True))
+
+
 def _cv_mm(p: Problem, groups: list[TermGroup], start: IdentificationResult) -> float:
     """Leave-one-cluster-out residual RMS (mm) of a model: comparable across models."""
     state, _ = model_state(p, fit_model(p, groups, start), groups)
@@ -226,8 +235,7 @@ def _select(p: Problem, candidates: list[TermGroup], alpha: float, n_boot: int, 
             sel.alternatives[best.group.key] = _period_aliases(best, tests)
         removed = []
         while len(sel.chosen) > 1:
-            drops = {g.key: _drop_test(p, sel.chosen, g, alpha, n_boot, seed + 100 * index, sel.fit)
-                     for g in sel.chosen[:-1]}
+            drops = _drop_tests(p, sel.chosen, alpha, n_boot, seed + 100 * index, sel.fit)
             p_drop = {k: 1.0 if t is None else t.p_value for k, t in drops.items()}
             worst = max(p_drop, key=lambda k: p_drop[k])
             if p_drop[worst] < alpha:
@@ -472,36 +480,40 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
     cv_final = _cv_mm(p, chosen, sel.fit) if chosen else s.cv_geometry
     scales, noise_mm = p.shape_prior[0], max(sel.fit.rms_residual, 1e-6)
     final = final_fit(p, chosen, sel.fit if chosen else geo, scales, noise_mm)
-    r_final, J_final = linearized(p, chosen, final.x)
-    cov, misfit = final_covariance(p, final, chosen, noise.chosen, scales, noise_mm)
-    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    final = dataclasses.replace(final, covariance=cov, std_errors=se)
-    before = verify_accuracy(p, geo, [])
-    after = verify_accuracy(p, final, chosen)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # What separates the named near-aliases (pose augmentation) needs only the final fit: found meanwhile.
+        aliasing = pool.submit(named_aliases, p, sel.chosen, sel.chosen_tests, sel.alike, sel.evidence, final, seed)
+        r_final, J_final = linearized(p, chosen, final.x)
+        cov, misfit = final_covariance(p, final, chosen, noise.chosen, scales, noise_mm)
+        se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        final = dataclasses.replace(final, covariance=cov, std_errors=se)
+        before = verify_accuracy(p, geo, [])
+        after = verify_accuracy(p, final, chosen)
 
-    r_geo, J_geo = linearized(p, [], geo.x)
-    ratio = None
-    if noise.chosen is not None:
-        ratio = noise_comparison(p.robot, p.mea.meas, noise.chosen.covariance[p.measure], (r_geo, J_geo),
-                                 (r_final, J_final), p.length_mm)
-    shift = session_shift(p.ctx_all, p.measure, leg_residuals(p, final, chosen), rec,
-                          lambda rows, offsets: predict(p, final, chosen, rows, offsets), unknown_terms(p, chosen),
-                          lambda rows: mean_residual_variance(p, final, chosen, cov, rows))
-    steps = _judge(p, geo, sel, shift)
-    chosen_keys = {g.key for g in chosen}
-    unconfirmed = tuple(dict.fromkeys(s.key for s in steps if s.confirmed is False and s.key in chosen_keys))
-    loadable = chosen if include_unconfirmed else [g for g in chosen if g.key not in unconfirmed]
-    model_terms = compensation_set(p.ctx_all, final, chosen)
-    loadable_fit, compensation = final, model_terms
-    if len(loadable) < len(chosen):
-        loadable_fit = final_fit(p, loadable, fit_model(p, loadable, sel.fit) if loadable else geo, scales, noise_mm)
-        compensation = compensation_set(p.ctx_all, loadable_fit, loadable)
-    compensation_after = after if loadable_fit is final else verify_accuracy(p, loadable_fit, loadable)
-    shapes = shapes_for(robot, p.ctx, final, cov, J_final, chosen, steps, before, alternatives, seed)
-    left_out = model_state(p, final, chosen)[0].left_out_norms_mm()
-    offsets = zero_offsets(robot, final.geometry(robot))
-    zero_said = zero_sentence(robot, offsets)
-    aliases = named_aliases(p, sel.chosen, sel.chosen_tests, sel.alike, sel.evidence, final, seed)
+        r_geo, J_geo = linearized(p, [], geo.x)
+        ratio = None
+        if noise.chosen is not None:
+            ratio = noise_comparison(p.robot, p.mea.meas, noise.chosen.covariance[p.measure], (r_geo, J_geo),
+                                     (r_final, J_final), p.length_mm)
+        shift = session_shift(p.ctx_all, p.measure, leg_residuals(p, final, chosen), rec,
+                              lambda rows, offsets: predict(p, final, chosen, rows, offsets), unknown_terms(p, chosen),
+                              lambda rows: mean_residual_variance(p, final, chosen, cov, rows))
+        steps = _judge(p, geo, sel, shift)
+        chosen_keys = {g.key for g in chosen}
+        unconfirmed = tuple(dict.fromkeys(s.key for s in steps if s.confirmed is False and s.key in chosen_keys))
+        loadable = chosen if include_unconfirmed else [g for g in chosen if g.key not in unconfirmed]
+        model_terms = compensation_set(p.ctx_all, final, chosen)
+        loadable_fit, compensation = final, model_terms
+        if len(loadable) < len(chosen):
+            refit = fit_model(p, loadable, sel.fit) if loadable else geo
+            loadable_fit = final_fit(p, loadable, refit, scales, noise_mm)
+            compensation = compensation_set(p.ctx_all, loadable_fit, loadable)
+        compensation_after = after if loadable_fit is final else verify_accuracy(p, loadable_fit, loadable)
+        shapes = shapes_for(robot, p.ctx, final, cov, J_final, chosen, steps, before, alternatives, seed)
+        left_out = model_state(p, final, chosen)[0].left_out_norms_mm()
+        offsets = zero_offsets(robot, final.geometry(robot))
+        zero_said = zero_sentence(robot, offsets)
+        aliases = aliasing.result()
 
     effects: list[str] = []
     for g in chosen:
