@@ -5,7 +5,7 @@ comparison, session shifts, located findings, and the JSON contract of `hilcal d
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -14,6 +14,9 @@ from hilcal.discovery.noise import NoiseLevel
 from hilcal.discovery.term_groups import TermGroup
 from hilcal.identification import IdentificationResult
 from hilcal.metrics import AccuracySummary
+
+if TYPE_CHECKING:
+    from hilcal.discovery.selection import GroupTest
 
 AXES = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
 
@@ -88,6 +91,21 @@ class CandidateResult:
 
     def to_json(self) -> dict[str, Any]:
         return {k: _finite(v) for k, v in self.__dict__.items()}
+
+
+def candidate_results(first: list[GroupTest], library: list[TermGroup], untestable: dict[str, str],
+                      chosen_keys: set[str]) -> tuple[CandidateResult, ...]:
+    """Every library candidate's evidence at the first step of the search, or why it could not be tested."""
+    by_key = {t.group.key: t for t in first}
+    out = [CandidateResult(name, name, False, reason) for name, reason in untestable.items()]
+    for g in library:
+        t = by_key.get(g.key)
+        if t is None:
+            out.append(CandidateResult(g.key, g.title, False, "absorbed by the geometric parameters"))
+            continue
+        out.append(CandidateResult(g.key, g.title, True, None, t.f_statistic, t.p_value, t.cv_rms_mm,
+                                   t.significant, t.rejected, g.key in chosen_keys, list(t.grades)))
+    return tuple(out)
 
 
 @dataclass(frozen=True)

@@ -65,7 +65,7 @@ from hilcal.discovery.generic_terms import generic_groups
 from hilcal.discovery.naming import named_effects
 from hilcal.discovery.noise import NoiseLevel, noise_yardstick, sphere_noise_covariance, sphere_sources
 from hilcal.discovery.physics import library_groups
-from hilcal.discovery.result import CandidateResult, Diagnosis, SessionShift, Step
+from hilcal.discovery.result import Diagnosis, SessionShift, Step, candidate_results
 from hilcal.discovery.screen import (
     OUTLIER_FACTOR,
     Screened,
@@ -111,20 +111,6 @@ def _period_aliases(best: GroupTest, tests: list[GroupTest]) -> tuple[TermGroup,
         and abs(1.0 / t.group.period_mm - 1.0 / g.period_mm) > resolution
         and t.press_gain_mm >= ALIAS_GAIN * best.press_gain_mm
     )
-
-
-def _candidate_results(first: list[GroupTest], library: list[TermGroup], untestable: dict[str, str],
-                       chosen_keys: set[str]) -> tuple[CandidateResult, ...]:
-    by_key = {t.group.key: t for t in first}
-    out = [CandidateResult(name, name, False, reason) for name, reason in untestable.items()]
-    for g in library:
-        t = by_key.get(g.key)
-        if t is None:
-            out.append(CandidateResult(g.key, g.title, False, "absorbed by the geometric parameters"))
-            continue
-        out.append(CandidateResult(g.key, g.title, True, None, t.f_statistic, t.p_value, t.cv_rms_mm,
-                                   t.significant, t.rejected, g.key in chosen_keys, list(t.grades)))
-    return tuple(out)
 
 
 @dataclasses.dataclass
@@ -536,7 +522,7 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
     diag = Diagnosis(
         effect=effect, effects=tuple(effects), explanation=explain.compose(answer), parameters=params, std_errors=std,
         before=before, after=after, steps=tuple(steps),
-        candidates=_candidate_results(sel.first_tests, s.library, s.untestable, chosen_keys),
+        candidates=candidate_results(sel.first_tests, s.library, s.untestable, chosen_keys),
         rejected=tuple(rejected.items()), ambiguous_with=tuple(a.other for a in aliases),
         cv_rms_geometry_mm=s.cv_geometry, cv_rms_final_mm=cv_final, noise=noise, noise_ratio=ratio,
         shapes=tuple(shapes), session_shift=shift, findings=findings, groups=tuple(chosen), geometry_fit=geo,
