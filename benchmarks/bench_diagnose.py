@@ -81,6 +81,21 @@ def _command(recording: Path, robot_path: Path, repeats: int, env: dict[str, str
     return wall, cpu
 
 
+ISSUE_40 = (
+    "Issue 40 (the example's command at most 10.5 times the reference; 13.4 times before): py-spy over every thread "
+    "and line_profiler on the hot functions showed the bootstrap's per-group sums (`np.add.reduceat` down the first "
+    "axis cost as much as the products they sum; now rank by rank in numpy's own pairwise order, bit for bit the "
+    "same), the candidate columns gathered, projected and concatenated again at every step (now one width-ordered "
+    "block made once, projected in place, the bases multiplied straight into their place), the same fit, "
+    "linearization and model state computed again (the geometry's twice, the final model's three times; now kept by "
+    "parameter names and values), the regressors on the whole recording recomputed for every finite difference, "
+    "and singular values of every pose in every forward kinematics call (now only where a Frobenius bound does not "
+    "clear the pose). Independent work now runs on the second core: the near-aliases' separating poses while the "
+    "rest of the answer is described, and the drop tests two at a time. The diagnosis' JSON is the same, bit for "
+    "bit, on the examples and on simulated recordings with library and out-of-library effects; on the diagnosis "
+    "study's quick cases it differs by at most one rounding (relative 2e-16).")
+
+
 def _reference_workload() -> None:
     """The yardstick, fixed: on one BLAS thread, 5 rounds of what a diagnosis step does at the example's size (1008
     whitened residuals, a 60-column model, 1500 candidate columns, 1000 draws): a QR of the model, the candidates
@@ -185,7 +200,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "runs again); the first stops at the step that finds the outlier. BLAS runs on one thread inside `diagnose` "
         "(threadpoolctl) and the bootstrap's largest products are split over two threads of its own. The ratio's "
         "reference workload is `_reference_workload` (fixed numpy work of a diagnosis step's kind on one BLAS "
-        "thread), timed turn about with the command, each ratio from one adjacent pair.")
+        "thread), timed turn about with the command, each ratio from one adjacent pair; the sources are "
+        "byte-compiled first.\n\n" + ISSUE_40)
     write_doc("benchmarks_diagnose.md", "Diagnose on real-shaped recordings", "benchmarks/bench_diagnose.py",
               f"{repeats} repeats per row; load average {load_before:.1f} before the run and {os.getloadavg()[0]:.1f} "
               "after it (other work on this shared machine shows in the wall times; CPU s is user + system time of "

@@ -5,7 +5,7 @@ comparison, session shifts, located findings, and the JSON contract of `hilcal d
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -14,9 +14,6 @@ from hilcal.discovery.noise import NoiseLevel
 from hilcal.discovery.term_groups import TermGroup
 from hilcal.identification import IdentificationResult
 from hilcal.metrics import AccuracySummary
-
-if TYPE_CHECKING:
-    from hilcal.discovery.selection import GroupTest
 
 AXES = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
 
@@ -93,9 +90,10 @@ class CandidateResult:
         return {k: _finite(v) for k, v in self.__dict__.items()}
 
 
-def candidate_results(first: list[GroupTest], library: list[TermGroup], untestable: dict[str, str],
+def candidate_results(first: list[Any], library: list[TermGroup], untestable: dict[str, str],
                       chosen_keys: set[str]) -> tuple[CandidateResult, ...]:
-    """Every library candidate's evidence at the first step of the search, or why it could not be tested."""
+    """Every library candidate's evidence at the first step of the search (`first`: its `selection.GroupTest`s), or
+    why it could not be tested."""
     by_key = {t.group.key: t for t in first}
     out = [CandidateResult(name, name, False, reason) for name, reason in untestable.items()]
     for g in library:
