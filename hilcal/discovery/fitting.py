@@ -209,6 +209,11 @@ def prior_rows(p: Problem, groups: list[TermGroup], shape_scale_mm: np.ndarray, 
     return P
 
 
+def model_name(groups: list[TermGroup], label: str = "") -> str:
+    """How a fit that did not converge is named in the answer."""
+    return label or ("geometry" if not groups else "geometry + " + ", ".join(g.key for g in groups))
+
+
 def fit_model(p: Problem, groups: list[TermGroup], start: IdentificationResult | None = None,
               label: str = "") -> IdentificationResult:
     """Least squares of geometry + groups on the measure rows (Gauss-Newton), warm-started from `start` when
@@ -246,7 +251,7 @@ def fit_model(p: Problem, groups: list[TermGroup], start: IdentificationResult |
     r = r[:6 * p.mea.n]
     p.remember(p.linearized, (names, x.tobytes()), (r, J[:6 * p.mea.n]))
     if not converged:
-        name = label or ("geometry" if not groups else "geometry + " + ", ".join(g.key for g in groups))
+        name = model_name(groups, label)
         if name not in p.not_converged:
             p.not_converged.append(name)
         log.warning("fit_not_converged", model=name, evaluations=evaluations, message=message)

@@ -55,6 +55,7 @@ from hilcal.discovery.fitting import (
     leg_residuals,
     linearized,
     mean_residual_variance,
+    model_name,
     model_state,
     predict,
     shape_scales,
@@ -144,10 +145,14 @@ def _drop_test(p: Problem, chosen: list[TermGroup], group: TermGroup, alpha: flo
 
 def _drop_tests(p: Problem, chosen: list[TermGroup], alpha: float, n_boot: int, seed: int,
                 start: IdentificationResult) -> dict[str, GroupTest | None]:
-    """`_drop_test` of every chosen group but the last, two at a time (each is a fit and a test of its own)."""
+    """`_drop_test` of every chosen group but the last, two at a time (each is a fit and a test of its own); fits that
+    did not converge are named in the order the tests would have run one after the other."""
+    first = len(p.not_converged)
     with ThreadPoolExecutor(max_workers=2) as pool:
-        tests = pool.map(lambda g: _drop_test(p, chosen, g, alpha, n_boot, seed, start), chosen[:-1])
-        return dict(zip([g.key for g in chosen[:-1]], tests, strict=True))
+        tests = list(pool.map(lambda g: _drop_test(p, chosen, g, alpha, n_boot, seed, start), chosen[:-1]))
+    serial = [model_name([c for c in chosen if c is not g]) for g in chosen[:-1]]
+    p.not_converged[first:] = sorted(p.not_converged[first:], key=lambda n: serial.index(n) if n in serial else 0)
+    return dict(zip([g.key for g in chosen[:-1]], tests, strict=True))
 
 
 def _cv_mm(p: Problem, groups: list[TermGroup], start: IdentificationResult) -> float:
