@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hilcal.kinematics import N_LEGS, Geometry, inverse_jacobian, leg_vectors, split_pose
+from hilcal.kinematics import N_LEGS, Geometry, leg_geometry, leg_vectors, split_pose
 
 AXES = ("x", "y", "z")
 
@@ -94,6 +94,11 @@ def constraint_jacobian(geom: Geometry, R: np.ndarray, t: np.ndarray) -> np.ndar
     in the seven columns of leg i and zeros elsewhere.
     """
     _, _, u = leg_vectors(geom, R, t)
+    return _constraint_rows(u, R)
+
+
+def _constraint_rows(u: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """`constraint_jacobian` from the legs' unit directions u [..., 6, 3] and the rotations R [..., 3, 3]."""
     shape = u.shape[:-2]
     G = np.zeros((*shape, N_LEGS, 7 * N_LEGS))
     uR = np.einsum("...ij,...jk->...ik", u, R)
@@ -111,8 +116,10 @@ def forward_jacobian(geom: Geometry, poses: np.ndarray, length_mm: float) -> np.
     evaluated at the poses the geometry reaches; rotation rows are scaled by length_mm.
     """
     R, t = split_pose(poses)
-    Jx = inverse_jacobian(geom, R, t)
-    G = constraint_jacobian(geom, R, t)
+    ra, v, length = leg_geometry(geom, R, t)
+    u = v / length[..., None]
+    Jx = np.concatenate([u, np.cross(ra, u)], axis=-1)  # inverse_jacobian
+    G = _constraint_rows(u, R)
     D = -np.linalg.solve(Jx, G)
     D[..., 3:, :] *= length_mm
     return D

@@ -58,10 +58,16 @@ def split_pose(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def leg_vectors(geom: Geometry, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Leg vectors R a_i + t - b_i [..., 6, 3], their lengths [..., 6] and unit directions [..., 6, 3]."""
+    _, v, length = leg_geometry(geom, R, t)
+    return v, length, v / length[..., None]
+
+
+def leg_geometry(geom: Geometry, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """R a_i [..., 6, 3], the leg vectors [..., 6, 3] and their lengths [..., 6]: what `leg_vectors` and the
+    Jacobians share (computed once where both are needed)."""
     ra = np.swapaxes(R @ geom.a.T, -1, -2)
     v = ra + t[..., None, :] - geom.b
-    length = np.linalg.norm(v, axis=-1)
-    return v, length, v / length[..., None]
+    return ra, v, np.linalg.norm(v, axis=-1)
 
 
 def inverse_kinematics(geom: Geometry, poses: np.ndarray) -> np.ndarray:
@@ -76,8 +82,8 @@ def inverse_jacobian(geom: Geometry, R: np.ndarray, t: np.ndarray) -> np.ndarray
 
     Row i is [u_i, (R a_i) x u_i]: the classic Stewart-platform inverse Jacobian.
     """
-    _, _, u = leg_vectors(geom, R, t)
-    ra = np.swapaxes(R @ geom.a.T, -1, -2)
+    ra, v, length = leg_geometry(geom, R, t)
+    u = v / length[..., None]
     return np.concatenate([u, np.cross(ra, u)], axis=-1)
 
 
@@ -115,6 +121,26 @@ def scaled_condition(J: np.ndarray, length_mm: float) -> np.ndarray:
         return s[..., 0] / s[..., -1]
 
 
+def _singular_rows(J: np.ndarray, length_mm: float, max_condition: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of J [N, 6, 6] whose `scaled_condition` is not below max_condition, and their condition numbers.
+
+    The singular values are computed only where a cheap bound does not already clear the pose: the condition number
+    is at most |Js|_F |Js^-1|_F (Frobenius norms), and a pose whose bound is below half the limit is well inside it."""
+    Js = J.copy()
+    Js[..., 3:] /= length_mm
+    try:
+        with np.errstate(all="ignore"):
+            bound = np.sqrt(np.sum(Js**2, axis=(1, 2)) * np.sum(np.linalg.inv(Js) ** 2, axis=(1, 2)))
+    except np.linalg.LinAlgError:
+        bound = np.full(len(J), np.inf)
+    check = np.flatnonzero(~(bound < 0.5 * max_condition))
+    if not check.size:
+        return check, np.zeros(0)
+    cond = scaled_condition(J[check], length_mm)
+    bad = ~(cond < max_condition)
+    return check[bad], cond[bad]
+
+
 def _characteristic_length(geom: Geometry) -> float:
     a = geom.a - geom.a.mean(axis=0)
     return float(np.sqrt(np.mean(np.sum(a**2, axis=1))))
@@ -146,14 +172,15 @@ def forward_kinematics(
             break
         qa = q[idx]
         R = rotation_matrix(qa[:, 3:])
-        _, length, _ = leg_vectors(geom, R, qa[:, :3])
+        ra, v, length = leg_geometry(geom, R, qa[:, :3])
         f = length - target[idx]
         done = np.max(np.abs(f), axis=1) < tol_mm
         active[idx[done]] = False
         if done.all():
             break
-        idx, qa, f, R = idx[~done], qa[~done], f[~done], R[~done]
-        J = inverse_jacobian(geom, R, qa[:, :3])
+        idx, qa, f, ra, v, length = idx[~done], qa[~done], f[~done], ra[~done], v[~done], length[~done]
+        u = v / length[..., None]
+        J = np.concatenate([u, np.cross(ra, u)], axis=-1)  # inverse_jacobian from the legs just measured
         J[:, :, 3:] = J[:, :, 3:] @ rpy_rate_matrix(qa[:, 3:])
         try:
             step = np.linalg.solve(J, -f[..., None])[..., 0]
@@ -168,12 +195,11 @@ def forward_kinematics(
             bad,
         )
     R = rotation_matrix(q[:, 3:])
-    cond = scaled_condition(inverse_jacobian(geom, R, q[:, :3]), _characteristic_length(geom))
-    singular = np.flatnonzero(~(cond < max_condition))
+    singular, cond = _singular_rows(inverse_jacobian(geom, R, q[:, :3]), _characteristic_length(geom), max_condition)
     if singular.size:
         raise SingularPoseError(
             f"{singular.size} pose(s) near a singularity (rows {singular[:10].tolist()}, "
-            f"condition {cond[singular[0]]:.3g} > {max_condition:.3g}): the pose is not determined by the legs",
+            f"condition {cond[0]:.3g} > {max_condition:.3g}): the pose is not determined by the legs",
             singular,
         )
     q[:, 3:] = np.degrees(q[:, 3:])

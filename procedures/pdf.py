@@ -1,62 +1,84 @@
-"""Print an HTML page to PDF with headless Chromium (``--print-to-pdf``): the page's own print CSS sets the paper.
+"""Print an HTML page to PDF with WeasyPrint: the page's own print CSS (``@page`` size and margins) sets the paper.
 
-Chromium renders exactly what the browser shows, with the page's ``@page`` size and margins, and is already on
-every station that runs the operator panel (``.ci/run`` installs it); WeasyPrint would add a second HTML engine
-and its system libraries for the same result. Each print gets a fresh, throw-away profile, no network features and
-a bounded time. HILCAL_CHROMIUM names the browser if it is not ``chromium`` or ``chromium-browser`` on the PATH.
+WeasyPrint (BSD, from PyPI) lays the page out with Pango, a system library every station already has, so no browser
+is needed for a PDF. It runs in a child Python process with a bounded time, so that a slow layout or a crash in its
+native libraries cannot take the run down with it; the child fetches local files only (no network), writes to a
+temporary name and the parent renames it, so a failed print leaves no PDF. Run as ``python -m procedures.pdf HTML PDF``.
 """
 
 from __future__ import annotations
 
+import logging
 import os
-import shutil
 import subprocess
-import tempfile
+import sys
 from pathlib import Path
 
 import structlog
 
 log = structlog.get_logger(__name__)
 
-FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         "--disable-dev-shm-usage", "--no-pdf-header-footer")
 TIMEOUT_S = 60.0
+ALLOWED_PROTOCOLS = ("file", "data")
+"""What the page may load: files beside it and data: URLs; never the network."""
+INSTALL = ("pip install 'weasyprint>=68,<71' (hilcal's dependency) and Debian's libpango-1.0-0 libpangoft2-1.0-0 "
+           "fonts-dejavu-core")
 
 
 class PdfError(RuntimeError):
-    """No PDF was written (no browser, or the browser failed); the message says why and how to fix it."""
-
-
-def find_chromium() -> str | None:
-    """The headless browser: $HILCAL_CHROMIUM, else chromium or chromium-browser on the PATH."""
-    named = os.environ.get("HILCAL_CHROMIUM")
-    if named:
-        return shutil.which(named) or (named if Path(named).is_file() else None)
-    return shutil.which("chromium") or shutil.which("chromium-browser")
+    """No PDF was written (WeasyPrint missing or failed); the message says why and how to fix it."""
 
 
 def print_to_pdf(html_path: Path, pdf_path: Path, *, timeout_s: float = TIMEOUT_S) -> Path:
     """Write pdf_path from the HTML file (written to a temporary name first, so a failed print leaves no PDF)."""
-    browser = find_chromium()
-    if browser is None:
-        raise PdfError("no headless Chromium found (install it: apt-get install -y chromium, or set HILCAL_CHROMIUM)")
+    html_path = Path(html_path).resolve()
+    if not html_path.is_file():
+        raise PdfError(f"{html_path} does not exist")
     partial = pdf_path.with_name(pdf_path.name + ".partial")
     partial.unlink(missing_ok=True)
-    with tempfile.TemporaryDirectory(prefix="hilcal-pdf-") as profile:
-        command = [browser, *FLAGS, f"--user-data-dir={profile}", f"--print-to-pdf={partial}",
-                   Path(html_path).resolve().as_uri()]
-        try:
-            done = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s, check=False)
-        except subprocess.TimeoutExpired:
-            partial.unlink(missing_ok=True)
-            raise PdfError(f"{browser} did not print {html_path} within {timeout_s:.0f} s") from None
-        except OSError as e:
-            raise PdfError(f"cannot start {browser}: {e}") from None
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)}
+    command = [sys.executable, "-m", "procedures.pdf", str(html_path), str(partial.resolve())]
+    try:
+        done = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s, check=False, env=env)
+    except subprocess.TimeoutExpired:
+        partial.unlink(missing_ok=True)
+        raise PdfError(f"WeasyPrint did not print {html_path} within {timeout_s:g} s") from None
+    except OSError as e:
+        raise PdfError(f"cannot start {sys.executable}: {e}") from None
     if done.returncode != 0 or not partial.is_file() or partial.stat().st_size == 0:
         partial.unlink(missing_ok=True)
-        tail = (done.stderr or "").strip().splitlines()[-3:]
-        raise PdfError(f"{browser} exited with {done.returncode} and wrote no PDF: {' | '.join(tail)}")
+        tail = " | ".join((done.stderr or "").strip().splitlines()[-3:])
+        raise PdfError(f"WeasyPrint exited with {done.returncode} and wrote no PDF: {tail}")
+    for note in (done.stdout or "").splitlines():
+        log.info("pdf_layout_note", note=note)
     partial.replace(pdf_path)
     log.info("pdf_written", path=str(pdf_path), bytes=pdf_path.stat().st_size)
     return pdf_path
+
+
+class _Notes(logging.Handler):
+    """WeasyPrint's warnings (CSS it ignores, files it cannot load), one a line on stdout for the parent's log."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        print(record.getMessage().replace("\n", " "), flush=True)
+
+
+def _render(html_path: str, pdf_path: str) -> int:
+    """The child: lay the page out and write the PDF; exit 2 (with the reason on stderr) if WeasyPrint cannot."""
+    try:
+        from weasyprint import HTML, URLFetcher
+    except (ImportError, OSError) as e:  # OSError: WeasyPrint found no Pango to load
+        print(f"WeasyPrint cannot be loaded ({e}); install {INSTALL}", file=sys.stderr)
+        return 2
+    logging.getLogger("weasyprint").addHandler(_Notes(logging.WARNING))
+    fetcher = URLFetcher(allowed_protocols=ALLOWED_PROTOCOLS, timeout=5)
+    HTML(filename=html_path, url_fetcher=fetcher, media_type="print").write_pdf(pdf_path)
+    return 0
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 3:
+        print("usage: python -m procedures.pdf HTML PDF", file=sys.stderr)
+        sys.exit(2)
+    sys.exit(_render(sys.argv[1], sys.argv[2]))

@@ -83,7 +83,7 @@ def augment(robot: Robot, geometry: Geometry, length_mm: float, information: np.
             break
         gain = np.linalg.solve(S[best], A[best])
         C = C - A[best].T @ gain
-        A = A - (Jc @ A[best].T) @ gain  # = Jc @ C with the new C, at a fraction of the cost
+        A -= (Jc @ A[best].T) @ gain  # = Jc @ C with the new C, at a fraction of the cost
         available[best] = False
         chosen.append(best)
         bands.append(band_of(C[np.ix_(block, block)]))

@@ -10,7 +10,7 @@ the refitted geometry with metres of opposite corrections).
 from __future__ import annotations
 
 import dataclasses
-import itertools
+import threading
 from collections.abc import Callable
 
 import numpy as np
@@ -20,7 +20,7 @@ from scipy.optimize import lsq_linear
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.noise import NoiseEstimate, find_repeats
 from hilcal.discovery.regression import cluster_robust_covariance, pooled_whitener, whiten
-from hilcal.discovery.selection import ModelState
+from hilcal.discovery.selection import Columns, ModelState
 from hilcal.discovery.term_groups import GENERIC, TermGroup
 from hilcal.error_models import GEOMETRIC_42, implicit_residuals
 from hilcal.identification import IdentificationResult, residual_function
@@ -35,6 +35,10 @@ log = structlog.get_logger(__name__)
 
 N_GEO = 42
 DL0_COLUMNS = [7 * i + 6 for i in range(6)]
+CACHED = 8
+"""Entries per cache of a Problem: a search step asks again only for the last few models."""
+MANY_GROUPS = 50
+"""A candidate list this long is the search's (its regressors are kept as one block, `Problem.phi_columns`)."""
 
 
 @dataclasses.dataclass
@@ -49,13 +53,46 @@ class Problem:
     mea: Recording
     ver: Recording
     clusters: np.ndarray
-    phi_cache: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    phi_cache: dict[str | tuple[str, str], np.ndarray] = dataclasses.field(default_factory=dict)
     shape_prior: tuple[np.ndarray, float | None] | None = None
     """(per-leg scale in mm, noise per residual component in mm or None) of the generic shapes' Gaussian prior
     (`prior_rows`), once the geometry-only fit has set it: every fit with a generic group then holds the shapes to
     the size the data shows. Without a noise level, each fit takes its start's residual RMS."""
     not_converged: list[str] = dataclasses.field(default_factory=list)
     """Fits that stopped before converging (named in the answer)."""
+    linearized: dict[tuple, tuple[np.ndarray, np.ndarray]] = dataclasses.field(default_factory=dict)
+    """(r, J) of the measure rows at a fit's solution, by (parameter names, x): what the fit's last step computed,
+    so that the model's linearization (`model_state`) need not compute it again."""
+    states: dict[tuple, tuple[ModelState, np.ndarray]] = dataclasses.field(default_factory=dict)
+    """`model_state` by (parameter names, x): the search asks for the same model's state more than once."""
+    fits: dict[tuple, IdentificationResult] = dataclasses.field(default_factory=dict)
+    """`fit_model` by (groups, start, prior, label): a refit from a model's own solution is asked for again."""
+    lock: threading.Lock = dataclasses.field(default_factory=threading.Lock, repr=False)
+    phi_block: tuple[np.ndarray, dict[str, tuple[int, int]]] | None = None
+    """The regressors of the first long candidate list, concatenated in their width order, with each group's
+    columns: the search's later lists are subsets of it, taken in one gather instead of concatenated again."""
+
+    def phi_columns(self, groups: list[TermGroup], order: np.ndarray) -> np.ndarray:
+        """[N, 6, total] the groups' regressors concatenated in `order` (the same numbers as concatenating them)."""
+        ranges = self.phi_block[1] if self.phi_block is not None else {}
+        ordered = [groups[k] for k in order.tolist()]
+        if len(groups) < MANY_GROUPS or not all(g.key in ranges for g in ordered):
+            block = np.concatenate([self.phi(g) for g in ordered], axis=2)
+            if len(groups) >= MANY_GROUPS:
+                starts = np.cumsum([0] + [self.phi(g).shape[2] for g in ordered])
+                self.phi_block = (block, {g.key: (int(a), int(b)) for g, a, b in zip(ordered, starts[:-1], starts[1:],
+                                                                                      strict=True)})
+            return block
+        columns = np.concatenate([np.arange(*ranges[g.key]) for g in ordered])
+        return np.take(self.phi_block[0], columns, axis=2)
+
+    def remember(self, cache: dict, key: tuple, value: object) -> None:
+        """Keep value under key, with at most CACHED entries (the oldest goes first); read with `get` (the search's
+        drop tests run in two threads)."""
+        with self.lock:
+            if len(cache) >= CACHED:
+                cache.pop(next(iter(cache)))
+            cache[key] = value
 
     @classmethod
     def of(cls, rec: Recording, robot: Robot, ctx_all: EffectContext | None = None) -> Problem:
@@ -80,6 +117,13 @@ class Problem:
         if group.key not in self.phi_cache:
             self.phi_cache[group.key] = group.phi(self.ctx)
         return self.phi_cache[group.key]
+
+    def phi_all(self, groups: list[TermGroup]) -> np.ndarray:
+        """[N, 6, q] the groups' regressors on every row of the recording (each group's computed once)."""
+        for g in groups:
+            if ("all", g.key) not in self.phi_cache:
+                self.phi_cache[("all", g.key)] = g.phi(self.ctx_all)
+        return np.concatenate([self.phi_cache[("all", g.key)] for g in groups], axis=2)
 
     def phi_of(self, groups: list[TermGroup]) -> np.ndarray | None:
         return np.concatenate([self.phi(g) for g in groups], axis=2) if groups else None
@@ -107,14 +151,14 @@ data cannot see get no step (minimum-norm steps), so a fit never drifts along th
 
 def gauss_newton(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0: np.ndarray,
                  max_iter: int | None = None, bounds: tuple[np.ndarray, np.ndarray] | None = None,
-                 ) -> tuple[np.ndarray, np.ndarray, int, bool, str]:
+                 ) -> tuple[np.ndarray, np.ndarray, int, bool, str, np.ndarray]:
     """Least squares by Gauss-Newton with minimum-norm steps on the column-scaled Jacobian and step shortening.
 
     The diagnosis' models are linear in every effect parameter and nearly linear in the small geometric errors,
     so from a warm start a few steps reach the minimum; a Levenberg-Marquardt search with a trust region crawled for
     hundreds of evaluations along directions the poses hardly see (benchmarks/bench_diagnose.py). With `bounds`
     (x0 inside them), a step that would leave them is the bounded linear least-squares step instead.
-    Returns (x, residuals, evaluations, converged, message)."""
+    Returns (x, residuals, evaluations, converged, message, Jacobian at x)."""
     max_iter = GN_ITERATIONS if max_iter is None else max_iter
     x = np.asarray(x0, dtype=float).copy()
     r, J = fun(x)
@@ -128,7 +172,7 @@ def gauss_newton(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0:
             d = lsq_linear(J / c, -r, bounds=((bounds[0] - x) * c, (bounds[1] - x) * c), method="bvls").x / c
         predicted = float(np.sum((J @ d) ** 2))
         if predicted <= GN_TOLERANCE * cost:
-            return x, r, evaluations, True, "Gauss-Newton: the next step gains nothing"
+            return x, r, evaluations, True, "Gauss-Newton: the next step gains nothing", J
         t = 1.0
         while True:
             try:
@@ -141,9 +185,9 @@ def gauss_newton(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x0:
                 break
             t *= 0.25
             if t < 1e-6:
-                return x, r, evaluations, True, "Gauss-Newton: no step lowers the sum of squares"
+                return x, r, evaluations, True, "Gauss-Newton: no step lowers the sum of squares", J
         x, r, J, cost = x + t * d, r_new, J_new, new_cost
-    return x, r, evaluations, False, f"Gauss-Newton stopped after {max_iter} steps"
+    return x, r, evaluations, False, f"Gauss-Newton stopped after {max_iter} steps", J
 
 
 def prior_rows(p: Problem, groups: list[TermGroup], shape_scale_mm: np.ndarray, noise_mm: float) -> np.ndarray:
@@ -165,12 +209,24 @@ def prior_rows(p: Problem, groups: list[TermGroup], shape_scale_mm: np.ndarray, 
     return P
 
 
+def model_name(groups: list[TermGroup], label: str = "") -> str:
+    """How a fit that did not converge is named in the answer."""
+    return label or ("geometry" if not groups else "geometry + " + ", ".join(g.key for g in groups))
+
+
 def fit_model(p: Problem, groups: list[TermGroup], start: IdentificationResult | None = None,
               label: str = "") -> IdentificationResult:
     """Least squares of geometry + groups on the measure rows (Gauss-Newton), warm-started from `start` when
     given, else from the nominal geometry; generic shapes are held by the problem's shape prior when it is set
-    (a shape and the geometry can otherwise trade against each other far along a valley the poses hardly see)."""
+    (a shape and the geometry can otherwise trade against each other far along a valley the poses hardly see).
+    The same fit asked for again (same groups, start and prior) is the one made before."""
     names = GEOMETRIC_42.names + names_of(groups)
+    x0 = _start(groups, start)
+    prior = None if p.shape_prior is None else (np.asarray(p.shape_prior[0]).tobytes(), p.shape_prior[1])
+    key = (names, None if x0 is None else x0.tobytes(), prior, label, None if start is None else start.rms_residual)
+    cached = p.fits.get(key)
+    if cached is not None:
+        return cached
     data = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
     P = np.zeros((0, len(names)))
     if p.shape_prior is not None:
@@ -183,7 +239,6 @@ def fit_model(p: Problem, groups: list[TermGroup], start: IdentificationResult |
         r, J = data(x)
         return (np.concatenate([r, P @ x]), np.concatenate([J, P])) if P.size else (r, J)
 
-    x0 = _start(groups, start)
     result = None
     if x0 is not None:
         try:
@@ -192,20 +247,23 @@ def fit_model(p: Problem, groups: list[TermGroup], start: IdentificationResult |
             result = None
     if result is None or not result[3]:
         result = gauss_newton(fun, np.zeros(len(names)))
-    x, r, evaluations, converged, message = result
+    x, r, evaluations, converged, message, J = result
     r = r[:6 * p.mea.n]
+    p.remember(p.linearized, (names, x.tobytes()), (r, J[:6 * p.mea.n]))
     if not converged:
-        name = label or ("geometry" if not groups else "geometry + " + ", ".join(g.key for g in groups))
+        name = model_name(groups, label)
         if name not in p.not_converged:
             p.not_converged.append(name)
         log.warning("fit_not_converged", model=name, evaluations=evaluations, message=message)
     rms = float(np.sqrt(np.mean(r**2)))
-    return IdentificationResult(
+    fit = IdentificationResult(
         x=x, names=names, model=GEOMETRIC_42.key, estimator="ls", formulation="forward", method="gauss-newton",
         residuals=r.reshape(-1, 6), max_abs_residual=float(np.max(np.abs(r))), rms_residual=rms,
         sigma=float(np.sqrt(r @ r / max(r.size - len(names), 1))), std_errors=None, covariance=None,
         rank=len(names), n_iterations=evaluations, converged=converged, message=message, length_mm=p.length_mm,
     )
+    p.remember(p.fits, key, fit)
+    return fit
 
 
 def _bounds(groups: list[TermGroup], size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -260,7 +318,7 @@ def final_fit(p: Problem, groups: list[TermGroup], start: IdentificationResult, 
     if not np.all(np.isfinite(residuals(x0)[0])):
         p.not_converged.append("final model (bounded, shapes held to the data)")
         return fit
-    x, _, _, converged, message = gauss_newton(residuals, x0, bounds=(lo, hi))
+    x, _, _, converged, message, _ = gauss_newton(residuals, x0, bounds=(lo, hi))
     if not converged:
         p.not_converged.append("final model (bounded, shapes held to the data)")
     r = fun(x)[0]
@@ -276,11 +334,11 @@ def final_covariance(p: Problem, final: IdentificationResult, groups: list[TermG
     unexplained shapes are the generic groups; the inflation is summarised over the library effects' parameters, or
     the geometry's without any); without one, the cluster-robust sandwich of the fitted residuals."""
     stations = p.mea.stations
-    r, J = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups),
-                             stations)(final.x)
+    r, J = linearized(p, groups, final.x) if stations is None else residual_function(
+        p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups), stations)(final.x)
     if noise is None:
         return cluster_robust_covariance(J, r, p.mea.n), None
-    raw = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))(final.x)[1]
+    raw = linearized(p, groups, final.x)[1]
     frames = None if stations is None else StationFrames.of(stations, p.mea.meas, p.length_mm, p.robot.home[:3])
     shapes, stated, k = [], [], N_GEO
     for g in groups:
@@ -363,7 +421,7 @@ def leg_residuals(p: Problem, fit: IdentificationResult, groups: list[TermGroup]
     """Per-leg length residuals (mm) of every row: length implied by the measured pose minus the modelled length."""
     legs = p.rec.legs_mm
     if groups:
-        legs = legs + np.concatenate([g.phi(p.ctx_all) for g in groups], axis=2) @ fit.x[N_GEO:]
+        legs = legs + p.phi_all(groups) @ fit.x[N_GEO:]
     return implicit_residuals(fit.geometry(p.robot), legs, p.rec.meas)
 
 
@@ -377,6 +435,8 @@ def mean_residual_variance(p: Problem, fit: IdentificationResult, groups: list[T
     frames = None if stations is None else StationFrames.of(stations, p.mea.meas, p.length_mm, p.robot.home[:3])
     fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
     row_stations = None if frames is None or p.rec.stations is None else p.rec.stations[rows]
+    phi_rows = (np.concatenate([g.phi(p.ctx_all.rows(rows)) for g in groups], axis=2)
+                if row_stations is not None and groups else None)
 
     def mean(x: np.ndarray) -> np.ndarray:
         moved = dataclasses.replace(fit, x=x)
@@ -385,8 +445,8 @@ def mean_residual_variance(p: Problem, fit: IdentificationResult, groups: list[T
             meas = remove_frames(p.rec.meas[rows], row_stations, frames.estimate(fun(x)[0]), p.length_mm,
                                  p.robot.home[:3])
             legs = p.rec.legs_mm[rows]
-            if groups:
-                legs = legs + np.concatenate([g.phi(p.ctx_all.rows(rows)) for g in groups], axis=2) @ x[N_GEO:]
+            if phi_rows is not None:
+                legs = legs + phi_rows @ x[N_GEO:]
             res = implicit_residuals(moved.geometry(p.robot), legs, meas)
         return res.mean(axis=0)
 
@@ -401,28 +461,47 @@ def mean_residual_variance(p: Problem, fit: IdentificationResult, groups: list[T
     return np.einsum("ij,jk,ik->i", G, cov, G)
 
 
+def linearized(p: Problem, groups: list[TermGroup], x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(r, J) of the measure rows (forward residuals of geometry + groups, no instrument stations) at x: the fit's last
+    evaluation when x is a fit's solution, else computed (and kept)."""
+    key = (GEOMETRIC_42.names + names_of(groups), x.tobytes())
+    cached = p.linearized.get(key)
+    if cached is None:
+        fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
+        cached = fun(x)
+        p.remember(p.linearized, key, cached)
+    return cached
+
+
 def model_state(p: Problem, fit: IdentificationResult, groups: list[TermGroup]) -> tuple[ModelState, np.ndarray]:
     """The model linearized and whitened at its fit, and d(residual)/d(dl0) per leg for new groups' columns."""
-    fun = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups))
-    r, J = fun(fit.x)
+    key = (GEOMETRIC_42.names + names_of(groups), fit.x.tobytes())
+    cached = p.states.get(key)
+    if cached is not None:
+        return cached
+    r, J = linearized(p, groups, fit.x)
     n = p.mea.n
     W = pooled_whitener(r, J, n)
     state = ModelState.build(whiten(r, W, n), whiten(J, W, n), W, n, p.clusters)
-    return state, J.reshape(n, 6, -1)[:, :, DL0_COLUMNS]
+    cached = (state, J.reshape(n, 6, -1)[:, :, DL0_COLUMNS])
+    p.remember(p.states, key, cached)
+    return cached
 
 
 def group_columns(p: Problem, state: ModelState, d_dl0: np.ndarray, group: TermGroup) -> np.ndarray:
     """A candidate group's whitened Jacobian columns at the current model."""
-    return groups_columns(p, state, d_dl0, [group])[0]
+    return groups_columns(p, state, d_dl0, [group]).block
 
 
-def groups_columns(p: Problem, state: ModelState, d_dl0: np.ndarray, groups: list[TermGroup]) -> list[np.ndarray]:
-    """`group_columns` of many groups in one product: the whitener and d(residual)/d(dl0) act on every column
-    of a pose alike, so their product is formed once and applied to all the groups' regressors together."""
-    if not groups:
-        return []
-    whitened_d = np.einsum("ij,njl->nil", state.W, d_dl0)
+def groups_columns(p: Problem, state: ModelState, d_dl0: np.ndarray, groups: list[TermGroup]) -> Columns:
+    """`group_columns` of many groups in one product, as one block laid out by width (`selection.Columns`): the
+    whitener and d(residual)/d(dl0) act on every column of a pose alike, so their product is formed once and applied
+    to all the groups' regressors together."""
     phis = [p.phi(g) for g in groups]
-    cols = whitened_d @ np.concatenate(phis, axis=2)
-    bounds = np.cumsum([0] + [ph.shape[2] for ph in phis])
-    return [cols[:, :, a:b].reshape(6 * p.mea.n, -1) for a, b in itertools.pairwise(bounds)]
+    widths = np.array([ph.shape[2] for ph in phis], dtype=int)
+    order = Columns.layout(widths)
+    if not groups:
+        return Columns(np.zeros((6 * p.mea.n, 0)), widths, order)
+    whitened_d = np.einsum("ij,njl->nil", state.W, d_dl0)
+    cols = whitened_d @ p.phi_columns(groups, order)
+    return Columns(cols.reshape(6 * p.mea.n, -1), widths, order)

@@ -90,6 +90,22 @@ class CandidateResult:
         return {k: _finite(v) for k, v in self.__dict__.items()}
 
 
+def candidate_results(first: list[Any], library: list[TermGroup], untestable: dict[str, str],
+                      chosen_keys: set[str]) -> tuple[CandidateResult, ...]:
+    """Every library candidate's evidence at the first step of the search (`first`: its `selection.GroupTest`s), or
+    why it could not be tested."""
+    by_key = {t.group.key: t for t in first}
+    out = [CandidateResult(name, name, False, reason) for name, reason in untestable.items()]
+    for g in library:
+        t = by_key.get(g.key)
+        if t is None:
+            out.append(CandidateResult(g.key, g.title, False, "absorbed by the geometric parameters"))
+            continue
+        out.append(CandidateResult(g.key, g.title, True, None, t.f_statistic, t.p_value, t.cv_rms_mm,
+                                   t.significant, t.rejected, g.key in chosen_keys, list(t.grades)))
+    return tuple(out)
+
+
 @dataclass(frozen=True)
 class ParameterRow:
     """One fitted effect parameter as an engineer reads it: which effect and leg, value, unit, uncertainty, grade."""

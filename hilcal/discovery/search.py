@@ -25,6 +25,7 @@ The rule (docs/diagnosis.md):
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -49,11 +50,12 @@ from hilcal.discovery.fitting import (
     final_covariance,
     final_fit,
     fit_model,
-    group_columns,
     groups_columns,
     judged_verify_mm,
     leg_residuals,
+    linearized,
     mean_residual_variance,
+    model_name,
     model_state,
     predict,
     shape_scales,
@@ -64,7 +66,7 @@ from hilcal.discovery.generic_terms import generic_groups
 from hilcal.discovery.naming import named_effects
 from hilcal.discovery.noise import NoiseLevel, noise_yardstick, sphere_noise_covariance, sphere_sources
 from hilcal.discovery.physics import library_groups
-from hilcal.discovery.result import CandidateResult, Diagnosis, SessionShift, Step
+from hilcal.discovery.result import Diagnosis, SessionShift, Step, candidate_results
 from hilcal.discovery.screen import (
     OUTLIER_FACTOR,
     Screened,
@@ -79,7 +81,7 @@ from hilcal.discovery.shapes import shapes_for
 from hilcal.discovery.stations import with_stations
 from hilcal.discovery.term_groups import GENERIC, LIBRARY, TermGroup, stack_phi
 from hilcal.error_models import pose_difference
-from hilcal.identification import IdentificationResult, residual_function
+from hilcal.identification import IdentificationResult
 from hilcal.kinematics import forward_kinematics
 from hilcal.recording import Recording
 from hilcal.robot import Robot
@@ -112,20 +114,6 @@ def _period_aliases(best: GroupTest, tests: list[GroupTest]) -> tuple[TermGroup,
     )
 
 
-def _candidate_results(first: list[GroupTest], library: list[TermGroup], untestable: dict[str, str],
-                       chosen_keys: set[str]) -> tuple[CandidateResult, ...]:
-    by_key = {t.group.key: t for t in first}
-    out = [CandidateResult(name, name, False, reason) for name, reason in untestable.items()]
-    for g in library:
-        t = by_key.get(g.key)
-        if t is None:
-            out.append(CandidateResult(g.key, g.title, False, "absorbed by the geometric parameters"))
-            continue
-        out.append(CandidateResult(g.key, g.title, True, None, t.f_statistic, t.p_value, t.cv_rms_mm,
-                                   t.significant, t.rejected, g.key in chosen_keys, list(t.grades)))
-    return tuple(out)
-
-
 @dataclasses.dataclass
 class _Selection:
     """The outcome of forward selection with backward elimination."""
@@ -151,8 +139,20 @@ def _drop_test(p: Problem, chosen: list[TermGroup], group: TermGroup, alpha: flo
     """The test of a chosen group given all the others (None when the others absorb it)."""
     others = [g for g in chosen if g is not group]
     state, d_dl0 = model_state(p, fit_model(p, others, start), others)
-    tests = assess(state, [group], [group_columns(p, state, d_dl0, group)], alpha, n_boot, seed)
+    tests = assess(state, [group], groups_columns(p, state, d_dl0, [group]), alpha, n_boot, seed)
     return tests[0] if tests else None
+
+
+def _drop_tests(p: Problem, chosen: list[TermGroup], alpha: float, n_boot: int, seed: int,
+                start: IdentificationResult) -> dict[str, GroupTest | None]:
+    """`_drop_test` of every chosen group but the last, two at a time (each is a fit and a test of its own); fits that
+    did not converge are named in the order the tests would have run one after the other."""
+    first = len(p.not_converged)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        tests = list(pool.map(lambda g: _drop_test(p, chosen, g, alpha, n_boot, seed, start), chosen[:-1]))
+    serial = [model_name([c for c in chosen if c is not g]) for g in chosen[:-1]]
+    p.not_converged[first:] = sorted(p.not_converged[first:], key=lambda n: serial.index(n) if n in serial else 0)
+    return dict(zip([g.key for g in chosen[:-1]], tests, strict=True))
 
 
 def _cv_mm(p: Problem, groups: list[TermGroup], start: IdentificationResult) -> float:
@@ -226,8 +226,7 @@ def _select(p: Problem, candidates: list[TermGroup], alpha: float, n_boot: int, 
             sel.alternatives[best.group.key] = _period_aliases(best, tests)
         removed = []
         while len(sel.chosen) > 1:
-            drops = {g.key: _drop_test(p, sel.chosen, g, alpha, n_boot, seed + 100 * index, sel.fit)
-                     for g in sel.chosen[:-1]}
+            drops = _drop_tests(p, sel.chosen, alpha, n_boot, seed + 100 * index, sel.fit)
             p_drop = {k: 1.0 if t is None else t.p_value for k, t in drops.items()}
             worst = max(p_drop, key=lambda k: p_drop[k])
             if p_drop[worst] < alpha:
@@ -472,37 +471,40 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
     cv_final = _cv_mm(p, chosen, sel.fit) if chosen else s.cv_geometry
     scales, noise_mm = p.shape_prior[0], max(sel.fit.rms_residual, 1e-6)
     final = final_fit(p, chosen, sel.fit if chosen else geo, scales, noise_mm)
-    r_final, J_final = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm,
-                                         p.phi_of(chosen))(final.x)
-    cov, misfit = final_covariance(p, final, chosen, noise.chosen, scales, noise_mm)
-    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    final = dataclasses.replace(final, covariance=cov, std_errors=se)
-    before = verify_accuracy(p, geo, [])
-    after = verify_accuracy(p, final, chosen)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # What separates the named near-aliases (pose augmentation) needs only the final fit: found meanwhile.
+        aliasing = pool.submit(named_aliases, p, sel.chosen, sel.chosen_tests, sel.alike, sel.evidence, final, seed)
+        r_final, J_final = linearized(p, chosen, final.x)
+        cov, misfit = final_covariance(p, final, chosen, noise.chosen, scales, noise_mm)
+        se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        final = dataclasses.replace(final, covariance=cov, std_errors=se)
+        before = verify_accuracy(p, geo, [])
+        after = verify_accuracy(p, final, chosen)
 
-    r_geo, J_geo = residual_function(p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm)(geo.x)
-    ratio = None
-    if noise.chosen is not None:
-        ratio = noise_comparison(p.robot, p.mea.meas, noise.chosen.covariance[p.measure], (r_geo, J_geo),
-                                 (r_final, J_final), p.length_mm)
-    shift = session_shift(p.ctx_all, p.measure, leg_residuals(p, final, chosen), rec,
-                          lambda rows, offsets: predict(p, final, chosen, rows, offsets), unknown_terms(p, chosen),
-                          lambda rows: mean_residual_variance(p, final, chosen, cov, rows))
-    steps = _judge(p, geo, sel, shift)
-    chosen_keys = {g.key for g in chosen}
-    unconfirmed = tuple(dict.fromkeys(s.key for s in steps if s.confirmed is False and s.key in chosen_keys))
-    loadable = chosen if include_unconfirmed else [g for g in chosen if g.key not in unconfirmed]
-    model_terms = compensation_set(p.ctx_all, final, chosen)
-    loadable_fit, compensation = final, model_terms
-    if len(loadable) < len(chosen):
-        loadable_fit = final_fit(p, loadable, fit_model(p, loadable, sel.fit) if loadable else geo, scales, noise_mm)
-        compensation = compensation_set(p.ctx_all, loadable_fit, loadable)
-    compensation_after = after if loadable_fit is final else verify_accuracy(p, loadable_fit, loadable)
-    shapes = shapes_for(robot, p.ctx, final, cov, J_final, chosen, steps, before, alternatives, seed)
-    left_out = model_state(p, final, chosen)[0].left_out_norms_mm()
-    offsets = zero_offsets(robot, final.geometry(robot))
-    zero_said = zero_sentence(robot, offsets)
-    aliases = named_aliases(p, sel.chosen, sel.chosen_tests, sel.alike, sel.evidence, final, seed)
+        r_geo, J_geo = linearized(p, [], geo.x)
+        ratio = None
+        if noise.chosen is not None:
+            ratio = noise_comparison(p.robot, p.mea.meas, noise.chosen.covariance[p.measure], (r_geo, J_geo),
+                                     (r_final, J_final), p.length_mm)
+        shift = session_shift(p.ctx_all, p.measure, leg_residuals(p, final, chosen), rec,
+                              lambda rows, offsets: predict(p, final, chosen, rows, offsets), unknown_terms(p, chosen),
+                              lambda rows: mean_residual_variance(p, final, chosen, cov, rows))
+        steps = _judge(p, geo, sel, shift)
+        chosen_keys = {g.key for g in chosen}
+        unconfirmed = tuple(dict.fromkeys(s.key for s in steps if s.confirmed is False and s.key in chosen_keys))
+        loadable = chosen if include_unconfirmed else [g for g in chosen if g.key not in unconfirmed]
+        model_terms = compensation_set(p.ctx_all, final, chosen)
+        loadable_fit, compensation = final, model_terms
+        if len(loadable) < len(chosen):
+            refit = fit_model(p, loadable, sel.fit) if loadable else geo
+            loadable_fit = final_fit(p, loadable, refit, scales, noise_mm)
+            compensation = compensation_set(p.ctx_all, loadable_fit, loadable)
+        compensation_after = after if loadable_fit is final else verify_accuracy(p, loadable_fit, loadable)
+        shapes = shapes_for(robot, p.ctx, final, cov, J_final, chosen, steps, before, alternatives, seed)
+        left_out = model_state(p, final, chosen)[0].left_out_norms_mm()
+        offsets = zero_offsets(robot, final.geometry(robot))
+        zero_said = zero_sentence(robot, offsets)
+        aliases = aliasing.result()
 
     effects: list[str] = []
     for g in chosen:
@@ -525,7 +527,7 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
     diag = Diagnosis(
         effect=effect, effects=tuple(effects), explanation=explain.compose(answer), parameters=params, std_errors=std,
         before=before, after=after, steps=tuple(steps),
-        candidates=_candidate_results(sel.first_tests, s.library, s.untestable, chosen_keys),
+        candidates=candidate_results(sel.first_tests, s.library, s.untestable, chosen_keys),
         rejected=tuple(rejected.items()), ambiguous_with=tuple(a.other for a in aliases),
         cv_rms_geometry_mm=s.cv_geometry, cv_rms_final_mm=cv_final, noise=noise, noise_ratio=ratio,
         shapes=tuple(shapes), session_shift=shift, findings=findings, groups=tuple(chosen), geometry_fit=geo,

@@ -166,28 +166,80 @@ def _min_p_adjust(p_obs: np.ndarray, f_star: np.ndarray, ranks: np.ndarray, dof:
     return out
 
 
-def _bases(Q: np.ndarray, dof: int, columns: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """(index, projected columns Xt, orthonormal basis Qk) of every group that adds something, batched by width.
+@dataclass(frozen=True)
+class Columns:
+    """Candidate groups' whitened Jacobian columns as one block [6N, total], laid out width class by width class (each
+    class contiguous), so that they are projected and tested in place, never gathered again."""
 
-    Every group's columns are projected off the model in one product, laid out width class by width class so each
-    class is one contiguous block. The basis comes from the eigen-decomposition of the small Gram matrix of the
-    column-scaled projection (Qk = Xs V / sqrt(lambda)), formed for a whole width class at once; groups whose Gram
-    matrix is ill-conditioned take an SVD instead (batched too)."""
-    if not columns:
-        return []
-    widths = np.array([X.shape[1] for X in columns])
-    order = np.argsort(widths, kind="stable")
-    X_all = np.concatenate([columns[k] for k in order], axis=1)
-    Xt_all = X_all - Q @ (Q.T @ X_all)
+    block: np.ndarray
+    widths: np.ndarray
+    """Per group, in the groups' order: its number of columns."""
+    order: np.ndarray
+    """The groups in the block's order (stable by width)."""
+
+    @staticmethod
+    def layout(widths: np.ndarray) -> np.ndarray:
+        return np.argsort(widths, kind="stable")
+
+    @classmethod
+    def of(cls, columns: list[np.ndarray]) -> Columns:
+        """The block of per-group column arrays [6N, width]."""
+        widths = np.array([X.shape[1] for X in columns], dtype=int)
+        order = cls.layout(widths)
+        return cls(np.concatenate([columns[k] for k in order], axis=1), widths, order)
+
+
+@dataclass(frozen=True)
+class _Kept:
+    """The groups that add something to the model, in the order of their bases in Q_all (class by class)."""
+
+    index: np.ndarray
+    """Per kept group: its position in the tested groups."""
+    ranks: np.ndarray
+    offsets: np.ndarray
+    """Per kept group: its first column in Q_all."""
+    Q_all: np.ndarray
+    """[6N, sum(ranks)] every kept group's orthonormal basis, orthogonal to the model."""
+    Xt_all: np.ndarray
+    """[6N, total] every group's columns with the model projected out, in the block's order."""
+    starts: np.ndarray
+    widths: np.ndarray
+    """Per kept group: its first column in Xt_all and its number of columns."""
+
+    def basis(self, k: int) -> np.ndarray:
+        return self.Q_all[:, int(self.offsets[k]):int(self.offsets[k] + self.ranks[k])]
+
+    def projected(self, k: int) -> np.ndarray:
+        return self.Xt_all[:, int(self.starts[k]):int(self.starts[k] + self.widths[k])]
+
+
+def _bases(Q: np.ndarray, dof: int, columns: Columns) -> _Kept | None:
+    """The projected columns and orthonormal basis of every group that adds something, batched by width.
+
+    Every group's columns are projected off the model in one product on the width-ordered block. The basis comes from
+    the eigen-decomposition of the small Gram matrix of the column-scaled projection (Qk = Xs V / sqrt(lambda)),
+    formed for a whole width class at once; groups whose Gram matrix is ill-conditioned take an SVD instead (batched
+    too). Within a class the bases are laid out eigen-decomposed first, then SVD, then the rest."""
+    if not columns.widths.size:
+        return None
+    X_all = columns.block
+    widths = columns.widths[columns.order]
+    Xt_all = Q @ (Q.T @ X_all)
+    np.subtract(X_all, Xt_all, out=Xt_all)
     norm_x2 = np.einsum("ij,ij->j", X_all, X_all)
     col2 = np.einsum("ij,ij->j", Xt_all, Xt_all)
     m = X_all.shape[0]
-    out = []
+    index: list[np.ndarray] = []
+    starts: list[np.ndarray] = []
+    rank_list: list[int] = []
+    made: list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None, list[np.ndarray]]] = []
+    """Per width class: (width, scaled columns, eigen-decomposed groups, their V / sqrt(lambda), other bases)."""
     first_column, first_group = 0, 0
-    for width in np.unique(widths):
+    for width in np.unique(widths).tolist():
         n = int(np.sum(widths == width))
-        idx = order[first_group:first_group + n]
+        idx = columns.order[first_group:first_group + n]
         cols = slice(first_column, first_column + n * width)
+        class_starts = first_column + width * np.arange(n)
         first_group, first_column = first_group + n, first_column + n * width
         Xt = Xt_all[:, cols].reshape(m, n, width).transpose(1, 0, 2)
         norm_x = np.sqrt(norm_x2[cols].reshape(n, width).sum(axis=1))
@@ -202,20 +254,43 @@ def _bases(Q: np.ndarray, dof: int, columns: list[np.ndarray]) -> list[tuple[int
         adds &= (rank > 0) & (rank < dof - 1)
         all_columns = np.all(col > 0, axis=1)
         full = adds & (rank == width) & all_columns & (s[:, -1] > s[:, 0] * 1e-4)
-        bases: dict[int, np.ndarray] = {}
-        if full.any():
-            made = scaled[full] @ (V[full] / np.sqrt(lam[full])[:, None, :])
-            bases.update(zip(np.flatnonzero(full).tolist(), made, strict=True))
         svd = adds & ~full & all_columns
+        rest = adds & ~full & ~all_columns
+        bases: list[np.ndarray] = []
         if svd.any():
             U, sv, _ = np.linalg.svd(scaled[svd], full_matrices=False)
-            for j, u, values in zip(np.flatnonzero(svd).tolist(), U, sv, strict=True):
-                bases[j] = u[:, values > values[0] * RANK_TOL]
-        for j, k in enumerate(idx.tolist()):
-            if adds[j]:
-                out.append((k, Xt[j], bases[j] if j in bases else orth(Xt[j], RANK_TOL)))
-    out.sort(key=lambda item: item[0])
-    return out
+            bases += [u[:, values > values[0] * RANK_TOL] for u, values in zip(U, sv, strict=True)]
+        bases += [orth(Xt[j], RANK_TOL) for j in np.flatnonzero(rest).tolist()]
+        made.append((width, scaled, full, V[full] / np.sqrt(lam[full])[:, None, :] if full.any() else None, bases))
+        rank_list += [width] * int(full.sum()) + [b.shape[1] for b in bases]
+        for which in (full, svd, rest):
+            index.append(idx[which])
+            starts.append(class_starts[which])
+    if not rank_list:
+        return None
+    ranks = np.array(rank_list, dtype=int)
+    offsets = np.concatenate([[0], np.cumsum(ranks)[:-1]]).astype(int)
+    Q_all = np.empty((m, int(ranks.sum())))
+    column = 0
+    for width, scaled, full, M, bases in made:
+        done = 0
+        for a, b in _runs(full):
+            # Qk = Xs V / sqrt(lambda), written in place: each group's product is the one a gathered copy would give.
+            np.matmul(scaled[a:b], M[done:done + b - a],
+                      out=Q_all[:, column:column + (b - a) * width].reshape(m, b - a, width).transpose(1, 0, 2))
+            column, done = column + (b - a) * width, done + b - a
+        for basis in bases:
+            Q_all[:, column:column + basis.shape[1]] = basis
+            column += basis.shape[1]
+    index_all = np.concatenate(index).astype(int)
+    return _Kept(index_all, ranks, offsets, Q_all, Xt_all, np.concatenate(starts).astype(int),
+                 columns.widths[index_all])
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[(start, end)] of the runs of True in a boolean mask."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
 
 
 THREADS = 2
@@ -242,18 +317,53 @@ class _Draws:
         gauss_rss = gauss_total - np.sum((Q.T @ gauss) ** 2, axis=0)
         return cls(signs32, adj, gauss32, (wild_rss, gauss_rss))
 
-    def candidate_sums(self, Q_part: np.ndarray, offsets: np.ndarray, n_poses: int) -> tuple[np.ndarray, np.ndarray]:
-        """Per group of a block of candidate bases (offsets relative to the block) and per draw, the squared length
-        of the draw's projection on the group: (wild, Gaussian). The candidates' part, thousands of columns by a
-        thousand draws, is formed in single precision: its relative error (1e-7) is far below what a p-value
+    def candidate_sums(self, Q_part: np.ndarray, ranks: np.ndarray, n_poses: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per group of a block of candidate bases (consecutive groups of `ranks` columns) and per draw, the squared
+        length of the draw's projection on the group: (wild, Gaussian). The candidates' part, thousands of columns
+        by a thousand draws, is formed in single precision: its relative error (1e-7) is far below what a p-value
         resolved to 1/(draws + 1) can show, and it halves the search's largest product. A wild draw
         R[6n + a, b] = adj[n, a] * sign[n, b] acts on a basis through its per-pose inner products with the adjusted
         residuals (6x fewer flops than the full product); the bases are orthogonal to the model, so their products
         with a draw are already those of the model-projected draw."""
         wild = _per_pose(Q_part, self.adjusted, n_poses).astype(np.float32) @ self.signs
         gauss = Q_part.T.astype(np.float32) @ self.gauss
-        return (np.add.reduceat(wild**2, offsets, axis=0).astype(float),
-                np.add.reduceat(gauss**2, offsets, axis=0).astype(float))
+        return (squared_group_sums(wild, ranks).astype(float), squared_group_sums(gauss, ranks).astype(float))
+
+
+def _pairwise(rows: np.ndarray) -> np.ndarray:
+    """Sum over axis 1 of rows [G, n, B] (n <= 128) in numpy's pairwise order: sequential below 8 terms, else eight
+    running sums combined pairwise, then the remainder."""
+    n = rows.shape[1]
+    if n < 8:
+        total = rows[:, 0].copy()
+        for i in range(1, n):
+            total += rows[:, i]
+        return total
+    partial = rows[:, :8].copy()
+    whole = n - n % 8
+    for i in range(8, whole, 8):
+        partial += rows[:, i:i + 8]
+    p = partial.transpose(1, 0, 2)
+    total = ((p[0] + p[1]) + (p[2] + p[3])) + ((p[4] + p[5]) + (p[6] + p[7]))
+    for i in range(whole, n):
+        total += rows[:, i]
+    return total
+
+
+def squared_group_sums(values: np.ndarray, ranks: np.ndarray) -> np.ndarray:
+    """[groups, B] sums of squares of consecutive row groups of values [sum(ranks), B] (overwritten by its squares).
+
+    The same numbers as ``np.add.reduceat(values**2, starts, axis=0)``, bit for bit (its first row plus the pairwise
+    sum of the rest), formed rank by rank on [groups, rank, B] blocks: reduceat along the first axis walks the rows one
+    group at a time and cost the bootstrap as much as its products (benchmarks/bench_diagnose.py)."""
+    squares = np.square(values, out=values)
+    starts = np.concatenate([[0], np.cumsum(ranks)[:-1]]).astype(int)
+    out = np.empty((ranks.size, values.shape[1]), dtype=values.dtype)
+    for q in np.unique(ranks).tolist():
+        which = np.flatnonzero(ranks == q)
+        rows = squares[starts[which, None] + np.arange(q)]
+        out[which] = rows[:, 0] if q == 1 else rows[:, 0] + _pairwise(rows[:, 1:])
+    return out
 
 
 @functools.lru_cache(maxsize=4)
@@ -284,17 +394,17 @@ def _null_sums(draws: _Draws, Q_all: np.ndarray, ranks: np.ndarray, n_poses: int
 
     def block(ab: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         a, b = ab
-        first = int(starts[a])
-        return draws.candidate_sums(Q_all[:, first:int(ends[b - 1])], starts[a:b] - first, n_poses)
+        return draws.candidate_sums(Q_all[:, int(starts[a]):int(ends[b - 1])], ranks[a:b], n_poses)
 
     with ThreadPoolExecutor(max_workers=len(blocks)) as pool:
         parts = list(pool.map(block, blocks))
     return np.concatenate([w for w, _ in parts]), np.concatenate([g for _, g in parts])
 
 
-def assess(state: ModelState, groups: list[TermGroup], columns: list[np.ndarray], alpha: float, n_boot: int,
+def assess(state: ModelState, groups: list[TermGroup], columns: Columns | list[np.ndarray], alpha: float, n_boot: int,
            seed: int) -> list[GroupTest]:
-    """Test every group (its whitened Jacobian columns given) against the current model."""
+    """Test every group (its whitened Jacobian columns given, per group or as a `Columns` block) against the current
+    model; the tests come in the groups' order."""
     r0, Q = state.r0, state.Q
     m, dof = r0.size, state.dof
     rss0 = float(r0 @ r0)
@@ -303,21 +413,22 @@ def assess(state: ModelState, groups: list[TermGroup], columns: list[np.ndarray]
         alphas[GENERIC] = alpha
     if not any(g.kind == GENERIC for g in groups):
         alphas[LIBRARY] = alpha
+    if not isinstance(columns, Columns):
+        columns = Columns.of(columns)
     with ThreadPoolExecutor(max_workers=1) as pool:
         # The null draws do not depend on the candidates: they are made while the candidates' bases are.
         making = pool.submit(_Draws.make, r0, Q, state.n_poses, n_boot, seed)
-        kept = [(groups[k], Xt, Qk) for k, Xt, Qk in _bases(Q, dof, columns)]
+        kept = _bases(Q, dof, columns)
         draws = making.result()
-    if not kept:
+    if kept is None:
         return []
-    ranks = np.array([Qk.shape[1] for _, _, Qk in kept])
-    Q_all = np.concatenate([Qk for _, _, Qk in kept], axis=1)
-    offsets = np.concatenate([[0], np.cumsum(ranks)[:-1]])
+    ranks, Q_all, offsets = kept.ranks, kept.Q_all, kept.offsets
     explained = np.add.reduceat((Q_all.T @ r0) ** 2, offsets)
     f_obs = (explained / ranks) / ((rss0 - explained) / (dof - ranks))
     p_obs = fdtrc(ranks, dof - ranks, f_obs)
 
-    families = np.array([g.kind for g, _, _ in kept])
+    kinds = [groups[k].kind for k in kept.index.tolist()]
+    families = np.array(kinds)
     adjusted = []
     for e_star, rss in zip(_null_sums(draws, Q_all, ranks, state.n_poses), draws.rss, strict=True):
         # F* = (e / q) / ((rss - e) / (dof - q)), formed in place on the [groups, draws] array.
@@ -328,20 +439,21 @@ def assess(state: ModelState, groups: list[TermGroup], columns: list[np.ndarray]
 
     # Held-out residuals only where they can matter: a group that fails its test can never be chosen, so only
     # the significant ones and the library (whose figures the report prints) need them.
-    significant = np.maximum(adjusted[0], adjusted[1]) < np.array([alphas[g.kind] for g, _, _ in kept])
+    significant = np.maximum(adjusted[0], adjusted[1]) < np.array([alphas[kind] for kind in kinds])
     need = np.flatnonzero(significant | (families == LIBRARY))
-    fitted_all = {int(k): kept[k][2] @ (kept[k][2].T @ r0) for k in need}
-    press_w = np.full(len(kept), state.press)
-    press_mm_all = np.full(len(kept), state.press_mm)
-    computed = np.zeros(len(kept), dtype=bool)
+    fitted_all = {int(k): kept.basis(k) @ (kept.basis(k).T @ r0) for k in need}
+    press_w = np.full(len(kinds), state.press)
+    press_mm_all = np.full(len(kinds), state.press_mm)
+    computed = np.zeros(len(kinds), dtype=bool)
     if need.size:
         left_out = state.loo.residuals_batch(np.stack([r0 - fitted_all[k] for k in need]),
-                                             [kept[k][2] for k in need])
+                                             [kept.basis(k) for k in need])
         press_w[need] = np.sum(left_out**2, axis=1)
         press_mm_all[need] = np.sum(_unwhiten(state.W, left_out, state.n_poses) ** 2, axis=1)
         computed[need] = True
     tests = []
-    for k, (group, Xt, _) in enumerate(kept):
+    for k in np.argsort(kept.index, kind="stable").tolist():
+        group, Xt = groups[int(kept.index[k])], kept.projected(k)
         cv_w = float(np.sqrt(press_w[k] / m)) if computed[k] else float("nan")
         cv_mm = float(np.sqrt(press_mm_all[k] / m)) if computed[k] else float("nan")
         press_mm = float(press_mm_all[k])

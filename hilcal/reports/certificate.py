@@ -19,10 +19,11 @@ from hilcal.reports.upload import upload_facts
 
 _CSS = """@page{size:A4;margin:13mm 13mm 15mm 13mm}
 *{box-sizing:border-box}body{font-family:"DejaVu Sans",Arial,sans-serif;font-size:8.6pt;color:#111;margin:0 auto;
-max-width:186mm;line-height:1.3;-webkit-print-color-adjust:exact;print-color-adjust:exact}
+max-width:186mm;line-height:1.3;-webkit-print-color-adjust:exact}
 h1{font-size:15pt;margin:0}h2{font-size:10pt;margin:3.2mm 0 1.2mm;border-bottom:.4pt solid #555}
 header{display:flex;justify-content:space-between;align-items:flex-end;border-bottom:1.2pt solid #111;
-padding-bottom:2mm}.number{font-size:11pt;font-weight:bold;text-align:right}
+padding-bottom:2mm}.number{font-size:11pt;font-weight:bold;text-align:right;white-space:nowrap}
+.badge{display:inline-block;font-size:10pt;padding:.5mm 2.4mm;border:.8pt solid #111;margin-top:1mm}
 table{border-collapse:collapse;width:100%;margin:.6mm 0}td,th{border:.4pt solid #999;padding:.5mm 1.4mm;
 text-align:left;vertical-align:top}td.n{text-align:right;white-space:nowrap;font-variant-numeric:tabular-nums}
 table.kv th{width:34%;background:#f2f2f2;font-weight:normal}th{background:#eaeaea}
@@ -31,7 +32,7 @@ margin:1mm 0}.pass{background:#dcefdc}.fail{background:#f6d5d5}.notproven{backgr
 .none{background:#eeeeee}.warn{border:.6pt solid #b38600;background:#fff6d6;padding:1mm 2mm;margin:1mm 0}
 .small{font-size:7.4pt;color:#333}.sig{display:flex;gap:12mm;margin-top:7mm}.sig div{flex:1;
 border-top:.6pt solid #111;padding-top:1mm}code{font-size:7.4pt;word-break:break-all}
-table.iso td,table.iso th{font-size:7.5pt;padding:.4mm .9mm}
+table.iso td,table.iso th{font-size:7.5pt;padding:.4mm .9mm}sub{line-height:0}
 @media screen{body{margin:8mm auto;padding:0 6mm}}"""
 
 ESTIMATORS = {"ls": "least-squares", "linf": "L-infinity (minimax)"}
@@ -226,7 +227,9 @@ def certificate_html(report: Mapping[str, Any]) -> str:
 <header><div><h1>Calibration certificate</h1><div class="small">Kinematic calibration of a 6-6 Gough/Stewart
 platform, hardware in the loop (hilcal)</div></div>
 <div class="number">No. <span id="certificate-number">{_esc(cert.get('number'))}</span><br>
-<span class="small">issued {_when(cert.get('issued_at'))}</span></div></header>
+<span class="small">issued {_when(cert.get('issued_at'))}</span><br>
+<span class="badge {DECISION_CLASS.get(cert.get('verdict'), 'none')}" id="verdict-summary">Verdict: \
+{_esc(cert.get('verdict') or None)}</span></div></header>
 <section><h2>Calibrated machine, place and people</h2>{_kv([
     ("machine (robot file)", f"{_esc(machine.get('robot_name'))} – {_esc(machine.get('robot_file'))}"),
     ("serial number", _esc(machine.get("serial"))),

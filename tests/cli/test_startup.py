@@ -13,7 +13,7 @@ import sys
 import pytest
 
 HEAVY = ("numpy", "matplotlib", "scipy", "starlette", "uvicorn", "sqlalchemy", "alembic", "psycopg", "cantools",
-         "pymodbus", "can", "serial", "selenium", "pypdf")
+         "pymodbus", "can", "serial", "selenium", "pypdf", "weasyprint")
 """Each costs tens to hundreds of milliseconds to import; the commands that need one import it themselves."""
 
 _TRACE = """

@@ -12,6 +12,7 @@ from hilcal.kinematics import (
     SingularPoseError,
     forward_kinematics,
     gravity_wrench,
+    inverse_jacobian,
     inverse_kinematics,
     leg_forces,
     pose_jacobian,
@@ -91,6 +92,25 @@ def test_singular_pose_raises(robot):
     pose = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     with pytest.raises(SingularPoseError):
         forward_kinematics(flat, inverse_kinematics(flat, pose), pose)
+
+
+def test_the_singularity_check_names_exactly_the_rows_past_the_limit(robot, rng):
+    """Against the singular values computed here: with the limit at the median condition number, the error names
+    every pose at or above it and no other, with the first one's condition."""
+    geom = Geometry.nominal(robot)
+    poses = feasible_random_poses(robot, 40, rng)
+    R, t = split_pose(poses)
+    J = inverse_jacobian(geom, R, t)
+    J[..., 3:] /= np.sqrt(np.mean(np.sum((robot.a - robot.a.mean(axis=0)) ** 2, axis=1)))
+    s = np.linalg.svd(J, compute_uv=False)
+    cond = s[:, 0] / s[:, -1]
+    limit = float(np.median(cond))
+    with pytest.raises(SingularPoseError) as info:
+        forward_kinematics(geom, inverse_kinematics(geom, poses), poses, max_condition=limit)
+    assert info.value.indices.tolist() == np.flatnonzero(cond >= limit).tolist()
+    assert f"condition {cond[cond >= limit][0]:.3g}" in str(info.value)
+    assert forward_kinematics(geom, inverse_kinematics(geom, poses), poses, max_condition=1.01 * cond.max()).shape == (
+        40, 6)
 
 
 def test_gravity_leg_forces_balance_the_weight(robot, rng):

@@ -1,6 +1,7 @@
 """The sign-off of `hilcal run --sim --acceptance iso9283`: the certificate (HTML and PDF), report.json's sign-off
 keys, the verdict with its exit code, the records and history, `hilcal certificate`, the simulated repeatability
-measured back, and the certificate in headless Chromium.
+measured back, and the certificate page in headless Chromium (the PDF, from WeasyPrint without a browser:
+test_certificate_pdf.py).
 
 Two simulated runs on a small plan (12 measure and 6 verify poses) keep this fast: one as the brief's command
 (no station file: the simulated station's example limits and its CMM's stated uncertainty, 3 cycles) and one with a
@@ -51,7 +52,6 @@ def strict(tmp_path_factory: pytest.TempPathFactory, small_plan: Path) -> tuple[
 
 
 def test_accepted_run_writes_the_certificate_and_its_pdf(accepted: tuple[Path, subprocess.CompletedProcess]) -> None:
-    require_chromium()  # the PDF is printed by headless Chromium
     tmp, done = accepted
     assert done.returncode == 0, done.stdout + done.stderr
     run = tmp / "run"
@@ -188,7 +188,6 @@ def test_a_limit_the_demo_machine_cannot_meet_fails(strict: tuple[Path, subproce
 
 def test_certificate_command_regenerates_both_files(accepted: tuple[Path, subprocess.CompletedProcess],
                                                     tmp_path: Path) -> None:
-    require_chromium()
     run = accepted[0] / "run"
     number = json.loads((run / "report.json").read_text())["certificate"]["number"]
     (run / "certificate.pdf").unlink()

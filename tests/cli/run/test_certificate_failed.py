@@ -15,7 +15,6 @@ import pytest
 
 from hilcal.kinematics import Geometry, forward_kinematics, inverse_kinematics
 from hilcal.robot import Robot, default_robot
-from tests.cli.browser_support import require_chromium
 from tests.cli.run.certificate_support import OPERATOR, REPEATABILITY_MM, STATION, hilcal, pdf_text
 from tests.cli.sim_speed import INSTANT_SIM
 
@@ -37,7 +36,6 @@ def failed(tmp_path_factory: pytest.TempPathFactory, small_plan: Path) -> tuple[
 
 def test_limits_the_machine_cannot_meet_fail_with_exit_code_4(failed: tuple[Path, subprocess.CompletedProcess]
                                                               ) -> None:
-    require_chromium()
     tmp, done = failed
     assert done.returncode == 4, done.stdout + done.stderr
     output = done.stdout + done.stderr
