@@ -51,12 +51,12 @@ class Acquisition:
     @classmethod
     def start(cls, robot: Robot, a_mm: np.ndarray, b_mm: np.ndarray, l0_mm: np.ndarray, rows: list[dict],
               tightening: float = 1.0) -> Acquisition:
-        """The model from the priors, refitted on the rows measured already (a resumed run's journal, whose first row
-        is checked again: the same notes, or the same stop)."""
+        """The model from the priors, taught the rows measured already one by one, as the run learned them (a resumed
+        run's journal: the same model, its record of how each pose fell against its prediction included, and its
+        first row checked again: the same notes, or the same stop)."""
         acq = cls(robot, prior_belief(a_mm, b_mm, l0_mm, Priors.of(robot).tightened(tightening)))
-        if rows:
-            acq._first_pose(np.asarray(rows[0]["legs"], dtype=float), np.asarray(rows[0]["meas"], dtype=float))
-            acq.belief = refit(acq.belief, np.array([r["legs"] for r in rows]), np.array([r["meas"] for r in rows]))
+        for row in rows:
+            acq.learn(row)
         return acq
 
     @property
