@@ -3,11 +3,12 @@ before it moves a machine it cannot measure safely.
 
 Before motion the leg readings must lie within the legs' travel and reach a pose. Each measured pose refits the
 acquisition model (``hilcal.acquisition.model``: the geometry with gross reading scales, held to the robot file's
-``[tolerances]``); the next pose's prediction and covariance go with its ``Measure`` message, so the CMM searches only
-where the platform can be. The first measured pose is compared with the readings leg by leg: a gross set-up fault is
-said in a note and measured as it is, a leg off by more than a quarter of its travel stops the run. A planned pose
-whose legs the model says would leave their travel (a transducer that reads short drives its leg beyond it) is
-skipped with a note. After the upload the model starts again from the uploaded geometry, with the priors tightened.
+``[tolerances]``, its bound widened by what it fails to predict; logged as ``acquisition.widened``); the next pose's
+prediction and covariance go with its ``Measure`` message, so the CMM searches only where the platform can be. The
+first measured pose is compared with the readings leg by leg: a gross set-up fault is said in a note and measured as
+it is, a leg off by more than a quarter of its travel stops the run. A planned pose whose legs the model says would
+leave their travel (a transducer that reads short drives its leg beyond it) is skipped with a note. After the upload
+the model starts again from the uploaded geometry, with the priors tightened.
 """
 
 from __future__ import annotations
@@ -102,6 +103,10 @@ class Acquisition:
         legs, meas = np.asarray(row["legs"], dtype=float), np.asarray(row["meas"], dtype=float)
         self.belief = refit(self.belief, np.vstack([self.belief.legs_mm, legs]),
                             np.vstack([self.belief.poses, meas]))
+        b = self.belief
+        if b.misfit_mm > b.priors.misfit_mm or b.calibration() > 1.0:
+            log.info("acquisition.widened", poses=b.n_poses, surprise=b.surprises[-1], misfit_mm=b.misfit_mm,
+                     calibration=b.calibration())
         if first:
             self._first_pose(legs, meas)
 
