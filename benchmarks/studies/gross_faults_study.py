@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import logging
 import os
 import platform
 import shutil
@@ -31,6 +32,8 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
+
+import structlog
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -375,6 +378,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=JSON_PATH, help="where the raw results go")
     parser.add_argument("--from-json", type=Path, help="write the page again from an earlier run's raw results")
     args = parser.parse_args(argv)
+    # the runs' models replayed here (prediction_check) say every widening; the progress lines are what to read
+    structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
     if args.from_json:
         saved = json.loads(args.from_json.read_text())
         args.doc.write_text(write_doc(saved["results"], saved["context"]))

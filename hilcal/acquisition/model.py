@@ -209,7 +209,7 @@ def refit(belief: MachineBelief, legs_mm: np.ndarray, poses: np.ndarray) -> Mach
         determined = float(np.sum(1.0 - np.diag(cov) / sig_p**2))
         dof = r.size - determined
         seen = float(np.sqrt(np.sum(r**2) / dof)) if dof >= 3 else 0.0
-        new_misfit = max(belief.priors.misfit_mm, seen, predictive_misfit_mm(r, J, cov, misfit))
+        new_misfit = max(belief.priors.misfit_mm, seen, predictive_misfit_mm(r, J, cov, misfit, sig_p))
         if np.isclose(new_misfit, misfit, rtol=0.05):
             break
         misfit = new_misfit
@@ -230,24 +230,36 @@ def _largest_of(n: int) -> float:
     return float(2.0 * gammaincinv(N_LEGS / 2.0, 0.5 ** (1.0 / n)))
 
 
-def predictive_misfit_mm(r: np.ndarray, J: np.ndarray, cov: np.ndarray, misfit_mm: float) -> float:
+PREDICTED_BY_DATA = 0.25
+"""A pose left out counts for the predictive misfit when the others predict it this much better than the priors alone
+(variance: twice as well in standard deviation); one the priors mostly predict says how far the machine is from
+them, which the calibration takes up, not what the model leaves out."""
+
+
+def predictive_misfit_mm(r: np.ndarray, J: np.ndarray, cov: np.ndarray, misfit_mm: float, sig_p: np.ndarray
+                         ) -> float:
     """The least leg-length misfit at which the fit predicts each measured pose from the others as well as it says.
 
     Each pose left out in turn (closed form, linearised: its residual through (I - H)^-1, H its block of the hat
     matrix) is a prediction of a pose the fit did not see, with its covariance: the parameters' part and the misfit
     per leg. With the right misfit their normalised squares are chi-square(6): on average 6, and the largest of N no
     larger than the median of the largest of N draws (what a model error that is large at a few poses only breaks
-    first). 0 when they already are.
+    first). Only the poses the others predict (``PREDICTED_BY_DATA``) count; 0 when they already are within it, or
+    when there are none.
     """
     n = r.size // N_LEGS
     Jb = J.reshape(n, N_LEGS, N_PARAMS)
     keep = np.eye(N_LEGS) - (Jb @ cov @ np.swapaxes(Jb, 1, 2)) / misfit_mm**2
     left_out = np.linalg.solve(keep, r.reshape(n, N_LEGS, 1))[..., 0]
     part = misfit_mm**2 * (np.linalg.inv(keep) - np.eye(N_LEGS))  # the parameters' part of its covariance
-    lam, V = np.linalg.eigh(0.5 * (part + np.swapaxes(part, 1, 2)))
+    by_prior = np.einsum("nik,k,nik->n", Jb, sig_p**2, Jb)  # the trace of that part from the priors alone
+    counted = np.trace(part, axis1=1, axis2=2) <= PREDICTED_BY_DATA * by_prior
+    if not counted.any():
+        return 0.0
+    lam, V = np.linalg.eigh(0.5 * (part[counted] + np.swapaxes(part[counted], 1, 2)))
     lam = np.maximum(lam, 0.0)
-    proj = np.einsum("nij,ni->nj", V, left_out) ** 2
-    largest = _largest_of(n)
+    proj = np.einsum("nij,ni->nj", V, left_out[counted]) ** 2
+    largest = _largest_of(int(counted.sum()))
 
     def least(excess: Callable[[np.ndarray], float]) -> float:
         """The least misfit^2 at which excess(normalised squares) <= 0, to 1 % (bisection: they fall as it grows)."""
