@@ -38,7 +38,11 @@ N_PARAMS = N_LEGS * PER_LEG
 MAX_ITERATIONS = 12
 STEP_TOL = 1e-9
 MAX_REWEIGHTS = 8
-"""Refits with the misfit estimated again, at most (it settles to 5 % in two or three)."""
+"""Refits with the misfit estimated again (until it changes by less than 5 %), at most."""
+PREDICTED_BY_DATA = 0.25
+"""A pose left out counts for the predictive misfit when the others predict it this much better than the priors alone
+(variance: twice as well in standard deviation); one the priors mostly predict says how far the machine is from
+them, which the calibration takes up, not what the model leaves out."""
 
 
 @dataclass(frozen=True)
@@ -102,7 +106,8 @@ class MachineBelief:
     poses: np.ndarray
     """(N, 6) measured poses."""
     misfit_mm: float
-    """Leg-length misfit per residual: the floor, or what the fit's residuals show beyond it."""
+    """Leg-length misfit per residual: the floor, or what the fit's residuals, or the poses left out of it
+    (``predictive_misfit_mm``), show beyond it."""
     residual_rms_mm: float
     """RMS of the leg-length residuals at the measured poses (0 before any pose)."""
     surprises: tuple[float, ...] = ()
@@ -228,12 +233,6 @@ def _normal(J: np.ndarray, r: np.ndarray, x: np.ndarray, misfit_mm: float, sig_p
 def _largest_of(n: int) -> float:
     """The median of the largest of n chi-square(6) draws: its quantile 0.5^(1/n)."""
     return float(2.0 * gammaincinv(N_LEGS / 2.0, 0.5 ** (1.0 / n)))
-
-
-PREDICTED_BY_DATA = 0.25
-"""A pose left out counts for the predictive misfit when the others predict it this much better than the priors alone
-(variance: twice as well in standard deviation); one the priors mostly predict says how far the machine is from
-them, which the calibration takes up, not what the model leaves out."""
 
 
 def predictive_misfit_mm(r: np.ndarray, J: np.ndarray, cov: np.ndarray, misfit_mm: float, sig_p: np.ndarray
