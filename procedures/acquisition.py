@@ -3,11 +3,12 @@ before it moves a machine it cannot measure safely.
 
 Before motion the leg readings must lie within the legs' travel and reach a pose. Each measured pose refits the
 acquisition model (``hilcal.acquisition.model``: the geometry with gross reading scales, held to the robot file's
-``[tolerances]``); the next pose's prediction and covariance go with its ``Measure`` message, so the CMM searches only
-where the platform can be. The first measured pose is compared with the readings leg by leg: a gross set-up fault is
-said in a note and measured as it is, a leg off by more than a quarter of its travel stops the run. A planned pose
-whose legs the model says would leave their travel (a transducer that reads short drives its leg beyond it) is
-skipped with a note. After the upload the model starts again from the uploaded geometry, with the priors tightened.
+``[tolerances]``, its bound widened by what it fails to predict; logged as ``acquisition.widened``); the next pose's
+prediction and covariance go with its ``Measure`` message, so the CMM searches only where the platform can be. The
+first measured pose is compared with the readings leg by leg: a gross set-up fault is said in a note and measured as
+it is, a leg off by more than a quarter of its travel stops the run. A planned pose whose legs the model says would
+leave their travel (a transducer that reads short drives its leg beyond it) is skipped with a note. After the upload
+the model starts again from the uploaded geometry, with the priors tightened.
 """
 
 from __future__ import annotations
@@ -51,12 +52,12 @@ class Acquisition:
     @classmethod
     def start(cls, robot: Robot, a_mm: np.ndarray, b_mm: np.ndarray, l0_mm: np.ndarray, rows: list[dict],
               tightening: float = 1.0) -> Acquisition:
-        """The model from the priors, refitted on the rows measured already (a resumed run's journal, whose first row
-        is checked again: the same notes, or the same stop)."""
+        """The model from the priors, taught the rows measured already one by one, as the run learned them (a resumed
+        run's journal: the same model, its record of how each pose fell against its prediction included, and its
+        first row checked again: the same notes, or the same stop)."""
         acq = cls(robot, prior_belief(a_mm, b_mm, l0_mm, Priors.of(robot).tightened(tightening)))
-        if rows:
-            acq._first_pose(np.asarray(rows[0]["legs"], dtype=float), np.asarray(rows[0]["meas"], dtype=float))
-            acq.belief = refit(acq.belief, np.array([r["legs"] for r in rows]), np.array([r["meas"] for r in rows]))
+        for row in rows:
+            acq.learn(row)
         return acq
 
     @property
@@ -102,6 +103,10 @@ class Acquisition:
         legs, meas = np.asarray(row["legs"], dtype=float), np.asarray(row["meas"], dtype=float)
         self.belief = refit(self.belief, np.vstack([self.belief.legs_mm, legs]),
                             np.vstack([self.belief.poses, meas]))
+        b = self.belief
+        if b.misfit_mm > b.priors.misfit_mm or b.calibration() > 1.0:
+            log.info("acquisition.widened", poses=b.n_poses, surprise=b.surprises[-1], misfit_mm=b.misfit_mm,
+                     calibration=b.calibration())
         if first:
             self._first_pose(legs, meas)
 

@@ -52,6 +52,15 @@ ASSEMBLY_SEED = 33
 """Assembly errors: all 42 (da, db per joint coordinate, dl0 per leg) from N(0, s^2), sim_devices.rig.config.
 random_errors(ASSEMBLY_SEED + k, s), k the size's index; the same draws on every robot."""
 ALIGNMENT_MM = (5.0, 10.0, 20.0, 50.0)
+DRIVE_ROBOTS = ("stroke320",)
+DRIVE_GAIN_PPM = 60000.0
+"""Scale fault with a drive compliance (issue 38): leg 1 reads 6 % long, as on the diagnosed 320 mm hexapod..."""
+DRIVE_C_MM_PER_KN_M = (0.30, 0.35, 0.40, 0.45, 0.50, 0.55)
+"""... and every leg's drive sags under its load by 300-550 µm/kN per metre of stroke (the rig's drive_compliance
+c_per_length, with no fixed part and no free length at zero stroke, as the twin `hilcal diagnose --report` writes)."""
+SOFT_DRIVE_FACTOR = 150.0
+"""The same drives this many times softer (45-82.5 mm/(kN m), 4-20 times a belt drive's): a sag of millimetres that
+changes with the pose, which the run's model (geometry and reading scales) does not hold; where the crash showed."""
 DEAD_LEGS = [4]
 COLLISION_EVENT = "cmm_sim.collision"
 STOPPED_EVENT = "cmm_sim.stopped"
@@ -108,9 +117,24 @@ def cases(robots: Iterable[str] = tuple(ROBOTS)) -> list[Case]:
         for mm in ALIGNMENT_MM:
             out.append(Case(robot, f"alignment-{_pc(mm)}mm", "alignment", f"station alignment off {mm:g} mm",
                             {"cmm": {"alignment_error_mm": mm}}))
+        if robot in DRIVE_ROBOTS:
+            out += [_drive_case(robot, 1.0), _drive_case(robot, SOFT_DRIVE_FACTOR)]
         out.append(Case(robot, "dead-transducer", "dead", f"dead transducer (leg {DEAD_LEGS[0]})",
                         {"controller": {"dead_transducer_legs": DEAD_LEGS}}))
     return out
+
+
+def _drive_case(robot: str, factor: float) -> Case:
+    """Leg 1 reading 6 % long and every leg's drive compliance, `factor` times DRIVE_C_MM_PER_KN_M."""
+    c = [factor * v for v in DRIVE_C_MM_PER_KN_M]
+    effects = {"sensor_scale": {"enabled": True, "gain_error_ppm": _gains(ONE_LEG, DRIVE_GAIN_PPM / 1e4)},
+               "drive_compliance": {"enabled": True, "c_fixed_mm_per_kn": 0.0, "c_per_length_mm_per_kn_m": c,
+                                    "free_length_at_zero_stroke_mm": 0.0}}
+    soft = factor != 1.0
+    return Case(robot, "gradient-1leg-6pc-soft-drive" if soft else "gradient-1leg-6pc-drive",
+                "soft-drive" if soft else "drive",
+                f"gradient leg 1 +6 %, drive compliance {c[0]:g}-{c[-1]:g} mm/(kN m)"
+                + (f" ({factor:g}x softer)" if soft else " (issue 38's twin)"), {"rig": {"effects": effects}})
 
 
 def select(all_cases: list[Case], patterns: Iterable[str]) -> list[Case]:
@@ -205,6 +229,63 @@ def probing(details: list[dict[str, Any]]) -> dict[str, Any]:
             "detail_rows": len(rows)}
 
 
+def _pre_upload_rows(run_dir: Path) -> list[dict[str, Any]]:
+    """The journal's rows before the upload (measure, verify), in the order measured: cmd, legs, meas."""
+    path = run_dir / "journal.sqlite"
+    if not path.exists():
+        return []
+    db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    try:
+        found = db.execute("SELECT cmd_json, legs_json, meas_json FROM measurements WHERE phase IN "
+                           "('measure', 'verify') ORDER BY seq").fetchall()
+    except sqlite3.Error:
+        return []
+    finally:
+        db.close()
+    return [{"cmd": json.loads(c), "legs": json.loads(legs), "meas": json.loads(m)} for c, legs, m in found]
+
+
+def prediction_check(run_dir: Path, robot_key: str) -> dict[str, Any]:
+    """How the run's predictions held, from the journal: its model (procedures.acquisition) taught the rows before
+    the upload one by one, as the run taught it, each platform sphere predicted as the CMM driver predicts it
+    (drivers/cmm/probing.py: the platform frame from the predicted pose on the registered base, conditioned on the
+    spheres measured before it) against where the measured pose put it. The largest offset over its bound, the most
+    an offset exceeded its bound (mm), and the rows with a sphere beyond its bound; None when no row was measured."""
+    import numpy as np
+
+    from drivers.cmm.probing import MEASURED_SIGMA_MM, REGISTERED_DEG, REGISTERED_MM
+    from drivers.cmm.types import ProbingConfig, transform_from_pose
+    from hilcal.acquisition.spheres import BodyBelief
+    from hilcal.robot import default_robot, load_robot
+    from procedures.acquisition import Acquisition
+
+    rows = _pre_upload_rows(run_dir)
+    if not rows:
+        return {"sphere_over_bound": None, "sphere_beyond_mm": None, "rows_beyond_bound": None}
+    robot = default_robot() if ROBOTS[robot_key] is None else load_robot(ROBOTS[robot_key])
+    floor, up = ProbingConfig().least_bound_mm, np.array([0.0, 0.0, 1.0])
+    acq = Acquisition.start(robot, robot.a, robot.b, robot.l0, [])
+    ratios, beyond = [], []
+    for row in rows:
+        expected = acq.expect(np.asarray(row["legs"]), np.asarray(row["cmd"]))
+        if expected is not None:
+            platform = BodyBelief.within(np.eye(4), REGISTERED_MM, REGISTERED_DEG).composed(
+                transform_from_pose(expected.pose), expected.cov)
+            T = transform_from_pose(np.asarray(row["meas"]))
+            over = []
+            for s in robot.platform_spheres:
+                pred = platform.predict(s, up, floor)
+                centre = T[:3, :3] @ s + T[:3, 3]
+                offset = float(np.linalg.norm(centre - pred.centre_mm))
+                over.append((offset / pred.bound_mm, offset - pred.bound_mm))
+                platform = platform.condition(s, centre, MEASURED_SIGMA_MM)
+            ratios.append(max(o[0] for o in over))
+            beyond.append(max(o[1] for o in over))
+        acq.learn(row)
+    return {"sphere_over_bound": max(ratios), "sphere_beyond_mm": max(beyond),
+            "rows_beyond_bound": sum(b > 0.0 for b in beyond)}
+
+
 def _sim_log(run_dir: Path) -> list[str] | None:
     log = run_dir / "sim.log"
     return ANSI.sub("", log.read_text(errors="replace")).splitlines() if log.exists() else None
@@ -224,10 +305,10 @@ def cmm_machine_time(run_dir: Path) -> float | None:
     return float(found[-1]) if found else None
 
 
-def summarize(run_dir: Path, code: int | None, output: str) -> dict[str, Any]:
+def summarize(run_dir: Path, code: int | None, output: str, robot_key: str | None = None) -> dict[str, Any]:
     """A finished run's figures from its folder: report.json (status, verification after, the physics step's
-    prediction), the journal (status, rows per phase and the CMM's work per pose), sim.log (collisions and the CMM's
-    machine time) and what it printed."""
+    prediction), the journal (status, rows per phase, the CMM's work per pose and, given the robot, how the
+    predictions held: ``prediction_check``), sim.log (collisions and the CMM's machine time) and what it printed."""
     report_path = run_dir / "report.json"
     report = json.loads(report_path.read_text()) if report_path.exists() else {}
     status, rows, details = _journal(run_dir)
@@ -241,7 +322,7 @@ def summarize(run_dir: Path, code: int | None, output: str) -> dict[str, Any]:
         "code": code, "status": report.get("status") or status, "report": bool(report), "rows": rows,
         "said": final_words(output), "collisions": count_collisions(run_dir),
         "cmm_machine_s": machine_s, "cmm_s_per_pose": machine_s / n_rows if machine_s is not None and n_rows else None,
-        **probing(details),
+        **probing(details), **(prediction_check(run_dir, robot_key) if robot_key is not None else {}),
         "measure_actual_s": measure.get("actual_s"), "measure_poses_planned": measure.get("n_poses"),
         "before": verification.get("before"), "after": verification.get("after"),
         "predicted": physics.get("predicted_with_physics"), "geometry_only": physics.get("predicted_geometry_only"),
@@ -283,7 +364,7 @@ def run_case(case: Case, work: Path, timeout_s: float = RUN_TIMEOUT_S) -> dict[s
         _stop(proc)
         output, _ = proc.communicate()
     (folder / "output.txt").write_text(output)
-    result = {**head, **summarize(folder / "run", proc.returncode, output),
+    result = {**head, **summarize(folder / "run", proc.returncode, output, case.robot),
               "seconds": time.perf_counter() - t0, "timed_out": timed_out,
               "command": "hilcal " + " ".join(cmd[3:]).replace(str(folder), "DIR")}
     if timed_out:
