@@ -66,8 +66,8 @@ class ReplayServer:
     def _emit(self, send: bool = True) -> None:
         while self.pos < len(self.script) and self.script[self.pos][0] == "sent":
             if send and self.conn is not None:
+                self.sent.append(self.script[self.pos][1])  # before the line leaves: the driver may see it at once
                 self.conn.sendall(self.script[self.pos][1].encode("latin-1") + b"\r\n")
-                self.sent.append(self.script[self.pos][1])
             self.pos += 1
 
     def _serve(self) -> None:

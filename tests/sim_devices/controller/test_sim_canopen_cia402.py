@@ -155,7 +155,8 @@ def test_fault_on_every_drive_and_reset(drives: Drives, legs: list[BaseNode402])
     drives.model.inject_fault(FaultCode.FOLLOWING_ERROR)
     for node in legs:
         wait_for(lambda node=node: node.emcy.active and node.emcy.active[-1].code == 0x8611)
-        assert node.is_faulted() and node.sdo[0x603F].raw == 0x8611
+        wait_for(node.is_faulted)  # the statusword's TPDO may come after the EMCY: neither has to come first
+        assert node.sdo[0x603F].raw == 0x8611
         assert node.sdo[0x6041].raw & 0x2000
     legs[0].reset_from_fault()  # the first reset takes the machine out of FAULT
     for node in legs[1:]:
