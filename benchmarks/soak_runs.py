@@ -20,8 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
-EXPECTED_ROWS = {("measure", k) for k in range(35)} | {(p, k) for p in ("verify", "verify_after") for k in range(24)}
-"""The default plan: 32 design poses with one measured 4 times (35 rows), 24 verify poses before and after."""
+
+def expected_rows(plan_file: Path) -> set[tuple[str, int]]:
+    """The rows a completed run of the plan it kept (``plan.json``) journals: every measure pose with its repeats
+    (the default plan: 32 design poses, one measured 4 times, 35 rows) and the verify poses before and after."""
+    plan = json.loads(plan_file.read_text())
+    n_measure, n_verify = len(plan["measure_poses"]), len(plan["verify_poses"])
+    return {("measure", k) for k in range(n_measure)} | {(p, k) for p in ("verify", "verify_after")
+                                                         for k in range(n_verify)}
+
+
 LATE_S = 0.1
 """The station's heartbeat_timeout_s: after this silence the host sends nothing but an e-stop."""
 IN_FLIGHT_S = 0.1
@@ -171,7 +179,7 @@ def _inspect(result: SoakRun, work: Path, out: Path) -> None:
         rows = _query(journal, "SELECT phase, pose_index FROM measurements")
         result.rows = len(rows)
         result.duplicated = len(rows) - len(set(rows))
-        result.lost = len(EXPECTED_ROWS - set(rows)) if result.completed else 0
+        result.lost = len(expected_rows(out / "plan.json") - set(rows)) if result.completed else 0
         for (data,) in _query(journal, "SELECT data_json FROM events WHERE kind = 'link_hold'"):
             link = json.loads(data)["link"]
             result.holds[link] = result.holds.get(link, 0) + 1

@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from hilcal.robot import Robot
 from sim_devices.rig import electric_physics, physics, table_physics, unlisted_physics
-from sim_devices.rig.config import RigConfig
+from sim_devices.rig.config import EffectsConfig, RigConfig
 from sim_devices.rig.unlisted_config import TIME_DEPENDENT_EFFECTS
 
 FK_TOLERANCE_MM = 1e-9
@@ -63,6 +63,7 @@ class SimulatedRig:
         self._last_translation = robot.home[:3].copy()
         self._pose_cache: np.ndarray | None = None
         self._active_effects = config.effects.active()
+        self._clock_moves_pose = _clock_moves_pose(config.effects, self._active_effects)
         self._direction = np.ones(6)
         self._last_move_mm = np.full(6, np.inf)
         self._time_s = 0.0
@@ -103,6 +104,8 @@ class SimulatedRig:
             if not np.isfinite(value) or not lo <= value <= hi:
                 raise ValueError(f"leg {i + 1}: {value} mm is outside the leg limits [{lo}, {hi}] mm")
         quantized = self._quantize(L)
+        if np.array_equal(quantized, self._reported):
+            return  # no step: the motion history (and so the pose) stays as it is
         self._direction = physics.motion_direction(self._direction, quantized - self._reported)
         self._last_move_mm = unlisted_physics.last_move_size_mm(self._last_move_mm, quantized - self._reported)
         self._reported = quantized
@@ -137,9 +140,9 @@ class SimulatedRig:
         """Set the simulated clock (s)."""
         if not np.isfinite(t_s) or t_s < 0:
             raise ValueError(f"t_s must be finite and >= 0, got {t_s}")
-        self._time_s = float(t_s)
-        if TIME_DEPENDENT_EFFECTS.intersection(self._active_effects):
+        if self._clock_moves_pose and t_s != self._time_s:
             self._pose_cache = None
+        self._time_s = float(t_s)
 
     def start_session(self) -> None:
         """Power-on now: the time-since-power-on of the local heating restarts (the legs cooled in between), and
@@ -388,6 +391,15 @@ class SimulatedRig:
             )
             noisy.append(points + noise)
         return noisy[0], noisy[1]
+
+
+def _clock_moves_pose(effects: EffectsConfig, active: list[str] | tuple[str, ...]) -> bool:
+    """Whether the platform moves when only the clock does: an effect that follows the time or the temperature (leg
+    tables only where one is read against the session time or the temperature)."""
+    timed = TIME_DEPENDENT_EFFECTS.intersection(active) - {"leg_tables"}
+    clocked_tables = "leg_tables" in active and any(
+        table.variable in ("session_time_s", "temp_c") for table in effects.leg_tables.tables)
+    return bool(timed) or clocked_tables
 
 
 def _rotation_step(w: np.ndarray) -> np.ndarray:

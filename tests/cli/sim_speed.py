@@ -7,6 +7,9 @@ The rig's clock follows the servo's, so its temperature is held (a drift of 1 K/
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 from procedures.cli.sim_station import SIM_TIMING
 
 DEVICES_INSTANT = """
@@ -30,3 +33,10 @@ def instant_timing() -> str:
     """The simulated station's [timing] section with no settle wait."""
     values = {**SIM_TIMING.model_dump(), "settle_s": 0.0}
     return "[timing]\n" + "".join(f"{key} = {value!r}\n" for key, value in values.items())
+
+
+def plan_rows(path: Path) -> tuple[int, int]:
+    """(measure rows, verify rows) a whole run of this plan file journals: every measure pose with its repeats, and
+    the verify poses once before and once after the upload (verify rows counts both)."""
+    plan = json.loads(path.read_text())
+    return len(plan["measure_poses"]), 2 * len(plan["verify_poses"])

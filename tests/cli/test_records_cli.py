@@ -104,12 +104,12 @@ def test_records_sync_writes_what_a_journal_kept(tmp_path):
 
 
 @pytest.mark.timeout(420)
-def test_two_simulated_runs_at_once_record_into_one_postgresql_database(pg_url, tmp_path, instant_plan):
+def test_two_simulated_runs_at_once_record_into_one_postgresql_database(pg_url, tmp_path, small_plan):
     env = {**os.environ, "MPLBACKEND": "Agg", "HILCAL_RECORDS": str(tmp_path / "not-used.sqlite")}
     (tmp_path / "sim.toml").write_text(INSTANT_SIM)
     procs = [subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", "--sim", "--yes", "--out",
                                str(tmp_path / name), "--records", pg_url, "--operator", name, "--sim-config",
-                               str(tmp_path / "sim.toml"), "--plan", str(instant_plan)],
+                               str(tmp_path / "sim.toml"), "--plan", str(small_plan)],
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env) for name in ("A", "B")]
     outputs = [p.communicate(timeout=400)[0].decode() for p in procs]
     assert [p.returncode for p in procs] == [0, 0], outputs

@@ -12,14 +12,15 @@ import numpy as np
 import pytest
 
 from tests.cli.links.link_support import gap_log, journal_rows, late_commands, run_hilcal, sim_config
+from tests.cli.sim_speed import plan_rows
 
 
 @pytest.mark.timeout(900)
-def test_short_gaps_are_ridden_through(tmp_path, instant_plan):
+def test_short_gaps_are_ridden_through(tmp_path, small_plan):
     out = tmp_path / "run"
-    config = sim_config(tmp_path, gap_at_frames=[40, 250, 500, 800, 1100, 1400], gap_min_s=0.2, gap_max_s=0.6,
+    config = sim_config(tmp_path, gap_at_frames=[40, 150, 250, 350, 450, 550], gap_min_s=0.2, gap_max_s=0.6,
                         seed=5)
-    done = run_hilcal(["--sim", "--sim-config", str(config), "--plan", str(instant_plan), "--out", str(out)], tmp_path)
+    done = run_hilcal(["--sim", "--sim-config", str(config), "--plan", str(small_plan), "--out", str(out)], tmp_path)
     assert done.returncode == 0, done.stdout + done.stderr
     gaps, received = gap_log(tmp_path)
     assert len(gaps) == 6 and all(0.2 <= g["length_s"] <= 0.6 for g in gaps)
@@ -32,7 +33,7 @@ def test_short_gaps_are_ridden_through(tmp_path, instant_plan):
     assert 0 < controller["longest_hold_s"] < 0.6, "a hold ends when the heartbeats return"
     assert "controller: " in done.stdout and "holds/retries" in done.stdout
     rows = journal_rows(out, "SELECT phase, pose_index FROM measurements")
-    assert len(rows) == len(set(rows)) == 35 + 24 + 24, "every pose measured exactly once"
+    assert len(rows) == len(set(rows)) == sum(plan_rows(small_plan)), "every pose measured exactly once"
     assert report["verification"]["after"]["max_position_mm"] <= 0.05
     uploaded = report["compensation"]["uploaded_parameters"]
     live = json.loads((out / "sim_state.json").read_text())["banks"]["live"]

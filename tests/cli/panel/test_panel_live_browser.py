@@ -1,11 +1,9 @@
 """`hilcal run --sim --panel` in headless Chromium, watched live in two browsers, paused, aborted from the page and
 resumed (the helpers in panel_support.py).
 
-The simulator runs as `make demo` does (a run takes ~40 s here; near-instant dynamics make the run CPU-bound,
-which on a 2-core machine shared with Chromium costs heartbeats): the test needs a run slow enough to pause in its
-middle. On a loaded machine the controller's 100 ms heartbeat can be lost, which ends a run with code 3 and its
-journal kept; the test then resumes it as an operator would (at most twice), since riding such gaps out is the
-engine's job (issue 11), not the panel's.
+The run needs to be slow enough to pause in its middle: the CMM probes at the demo's pace (about 0.4 s a pose) while
+the servo moves at once, on the small plan (12 + 6 poses), so the run is spent waiting on the instrument, as at a
+machine, and not CPU-bound (which on a 2-core machine shared with Chromium would cost the controller's heartbeats).
 """
 
 from __future__ import annotations
@@ -17,6 +15,18 @@ import pytest
 
 from tests.cli.browser_support import chromium, free_port, require_chromium, text, wait_for
 from tests.cli.panel.panel_support import collect_latency, done_count, journal_rows, page_view, start_panel_run, stop
+from tests.cli.sim_speed import plan_rows
+
+SIM = """
+[controller]
+time_scale = 100000.0
+[cmm]
+time_scale = 0.0005
+[rig.temperature]
+drift_k_per_h = 0.0
+amplitude_k = 0.0
+"""
+"""The servo near-instant, the CMM at the demo's pace; the rig's clock follows the servo's: its temperature is held."""
 
 
 @pytest.fixture(autouse=True)
@@ -25,23 +35,27 @@ def _browser_present():
 
 
 @pytest.mark.timeout(900)
-def test_live_run_in_two_browsers_then_abort_from_the_page_and_resume(tmp_path):
+def test_live_run_in_two_browsers_then_abort_from_the_page_and_resume(tmp_path, small_plan):
     out = tmp_path / "run"
+    (tmp_path / "sim.toml").write_text(SIM)
+    n_measure, n_verify = plan_rows(small_plan)
     port = free_port()
     url = f"http://127.0.0.1:{port}/"
     proc = None
     try:
         with chromium() as first, chromium() as second:  # started first: their start-up loads the CPU
-            proc, log = start_panel_run(tmp_path, port, "--sim", "--yes", "--out", str(out))
+            proc, log = start_panel_run(tmp_path, port, "--sim", "--yes", "--sim-config", str(tmp_path / "sim.toml"),
+                                        "--plan", str(small_plan), "--out", str(out))
             first.get(url)
             done = wait_for(lambda p=proc: (done_count(first) >= 3 and done_count(first)) or p.poll() is not None, 120,
                             "three poses done on the page")
             assert proc.poll() is None, log.read_text()
-            assert re.fullmatch(r"(measure|verify) pose \d+ of (35|24)", text(first, "current-pose"))
+            assert re.fullmatch(rf"(measure|verify) pose \d+ of ({n_measure}|{n_verify // 2})",
+                                text(first, "current-pose"))
             (journaled,) = journal_rows(out, "SELECT COUNT(*) FROM measurements")[0]
             assert done <= journaled, "the page cannot be ahead of the journal"
-            # 32 design poses with one of them measured 3 more times, then 24 verify poses
-            assert len(first.find_elements("css selector", "#plan-table tr")) == 1 + (32 + 3) + 24
+            # the design poses with one of them measured 3 more times, then the verify poses
+            assert len(first.find_elements("css selector", "#plan-table tr")) == 1 + n_measure + n_verify // 2
 
             second.get(url)
             first.find_element("id", "pause").click()
@@ -77,7 +91,7 @@ def test_live_run_in_two_browsers_then_abort_from_the_page_and_resume(tmp_path):
         code = proc.wait(240)  # the browser is closed; the run goes on
         assert code == 0, log.read_text()
         rows = journal_rows(out, "SELECT phase, pose_index FROM measurements")
-        assert len(rows) == len(set(rows)) == (32 + 3) + 24 + 24
+        assert len(rows) == len(set(rows)) == n_measure + n_verify
         assert json.loads((out / "report.json").read_text())["status"] == "complete"
     finally:
         if proc is not None:

@@ -27,7 +27,7 @@ from hilcal.protocols.compensation import block_words, zero_block
 from hilcal.robot import default_robot
 from procedures.station import save_station, station_from_channels
 from sim_devices.launcher import spawn_sim_subprocess, stop_sim_subprocess
-from tests.cli.sim_speed import INSTANT_SIM
+from tests.cli.sim_speed import INSTANT_SIM, plan_rows
 
 SIM_CONFIG = INSTANT_SIM + """
 [controller.modbus_faults]
@@ -77,12 +77,12 @@ def _start(out: Path, tmp: Path, run_id: str | None, stdout: int = subprocess.DE
 
 
 @pytest.mark.timeout(900)
-def test_sigkill_at_seeded_points_then_resume(tmp_path, instant_plan):
+def test_sigkill_at_seeded_points_then_resume(tmp_path, small_plan):
     (tmp_path / "sim.toml").write_text(SIM_CONFIG)
     sim, channels = spawn_sim_subprocess(tmp_path / "sim.toml", ["--state-file", str(tmp_path / "sim_state.json")])
     try:
         save_station(station_from_channels(channels), tmp_path / "station.toml")
-        shutil.copy(instant_plan, tmp_path / "plan.json")
+        shutil.copy(small_plan, tmp_path / "plan.json")
         _kill_and_resume(tmp_path)
     finally:
         stop_sim_subprocess(sim)
@@ -92,8 +92,10 @@ def _kill_and_resume(tmp_path: Path) -> None:
     rng = np.random.default_rng(20261121)
     out = tmp_path / "run"
     journal = out / "journal.sqlite"
-    pre = 35 + 24  # 32 measure poses, one measured 4 times, and 24 verify poses; then 24 again after the upload
-    total = pre + 24
+    # The small plan: 12 measure poses, one of them measured 4 times; 6 verify poses before and after the upload.
+    n_measure, n_verify = plan_rows(tmp_path / "plan.json")
+    pre = n_measure + n_verify // 2
+    total = n_measure + n_verify
     # Kill points: after k measurements plus a random delay, spread over all three phases, and inside the upload.
     kill_after = sorted(rng.choice(np.arange(1, total), size=18, replace=False).tolist())
     plan = [("startup", 0, rng.uniform(0.5, 2.0))]

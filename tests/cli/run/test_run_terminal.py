@@ -122,12 +122,12 @@ class Terminal:
 
 
 @pytest.fixture
-def terminal(tmp_path: Path, instant_plan: Path):
+def terminal(tmp_path: Path, small_plan: Path):
     (tmp_path / "sim.toml").write_text(SIM)
     env = {**os.environ, "HILCAL_RECORDS": str(tmp_path / "records.sqlite"), "TERM": "xterm",
            "COLUMNS": str(COLUMNS), "LINES": str(ROWS)}
     term = Terminal([sys.executable, "-m", "procedures.cli", "run", "--sim", "--sim-config", str(tmp_path / "sim.toml"),
-                     "--plan", str(instant_plan), "--out", str(tmp_path / "run")], env)
+                     "--plan", str(small_plan), "--out", str(tmp_path / "run")], env)
     yield term
     term.close()
 
