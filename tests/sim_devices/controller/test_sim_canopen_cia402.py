@@ -29,6 +29,9 @@ from sim_devices.rig.rig import SimulatedRig
 
 pytestmark = pytest.mark.timeout(60)
 
+SDO_TIMEOUT_S = 2.0
+"""canopen's SdoClient waits 0.3 s for an answer by default; a busy 2-core CI machine can take longer."""
+
 ROBOT = default_robot()
 NODE_IDS = [11, 12, 13, 14, 15, 16]
 SAVE = b"save"
@@ -62,6 +65,8 @@ def drives() -> Iterator[Drives]:
     net = canopen.Network()
     net.connect(interface="slcan", channel=servers.slcan_path, sleep_after_open=0)
     nodes = [BaseNode402(node_id, str(CIA402_LEG_DRIVE_EDS)) for node_id in NODE_IDS]
+    for node in nodes:
+        node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
     boot_ups: dict[int, list[float]] = {}
     for node in nodes:
         net.add_node(node)

@@ -34,6 +34,9 @@ from sim_devices.rig.rig import SimulatedRig
 
 pytestmark = pytest.mark.timeout(60)
 
+SDO_TIMEOUT_S = 2.0
+"""canopen's SdoClient waits 0.3 s for an answer by default; a busy 2-core CI machine can take longer."""
+
 ROBOT = default_robot()
 NODE_ID = 5
 SERIAL = 0x12345678
@@ -77,6 +80,7 @@ def device() -> Iterator[Device]:
     net = canopen.Network()
     net.connect(interface="slcan", channel=servers.slcan_path, sleep_after_open=0)
     node = canopen.RemoteNode(NODE_ID, str(HEXAPOD_CONTROLLER_EDS))
+    node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
     net.add_node(node)
     try:
         yield Device(servers, model, rig, net, node, count_boot_ups(node))
@@ -138,8 +142,10 @@ def test_nmt_boot_up_heartbeat_and_states(device: Device, hx6: canopen.RemoteNod
     assert hx6.nmt.wait_for_heartbeat(1.0) == "OPERATIONAL"
     hx6.nmt.state = "STOPPED"
     assert hx6.nmt.wait_for_heartbeat(1.0) == "STOPPED"
+    hx6.sdo.RESPONSE_TIMEOUT = 0.3  # canopen's default: the silence is what is expected here
     with pytest.raises(SdoCommunicationError):  # no SDO in STOPPED
         hx6.sdo[0x1018][1].raw  # noqa: B018
+    hx6.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
     hx6.nmt.state = "PRE-OPERATIONAL"
     assert hx6.nmt.wait_for_heartbeat(1.0) == "PRE-OPERATIONAL"
     hx6.sdo[0x1017].raw = 20
@@ -350,6 +356,7 @@ def test_virtual_bus_carrier(tmp_path) -> None:
     net = canopen.Network()
     net.connect(interface="virtual", channel=channel)
     node = canopen.RemoteNode(1, str(HEXAPOD_CONTROLLER_EDS))
+    node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
     net.add_node(node)
     states: list[int] = []
     node.nmt.add_heartbeat_callback(states.append)
@@ -369,6 +376,7 @@ def test_dead_transducer_stops_the_move_with_a_following_error_emcy(tmp_path) ->
     net = canopen.Network()
     net.connect(interface="virtual", channel=channel)
     node = canopen.RemoteNode(1, str(HEXAPOD_CONTROLLER_EDS))
+    node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
     net.add_node(node)
     try:
         with serve_canopen(model, "hexapod", bus_config={"interface": "virtual", "channel": channel}):

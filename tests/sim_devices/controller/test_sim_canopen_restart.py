@@ -21,6 +21,9 @@ from sim_devices.launcher import spawn_sim_subprocess, stop_sim_subprocess
 
 pytestmark = pytest.mark.timeout(90)
 
+SDO_TIMEOUT_S = 2.0
+"""canopen's SdoClient waits 0.3 s for an answer by default; a busy 2-core CI machine can take longer."""
+
 ROBOT = default_robot()
 
 
@@ -31,6 +34,7 @@ class Host:
         self.net = canopen.Network()
         self.net.connect(interface="slcan", channel=channels["can"]["channel"], sleep_after_open=0)
         self.node = canopen.RemoteNode(channels["canopen"]["node_ids"][0], channels["canopen"]["eds"])
+        self.node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
         self.net.add_node(self.node)
 
     def close(self) -> None:
