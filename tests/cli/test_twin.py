@@ -20,8 +20,10 @@ import pytest
 from hilcal.discovery.search import diagnose
 from hilcal.recording import read_recording
 from hilcal.robot import default_robot, load_robot
+from procedures.cli.sim_station import SIM_TIMING
 from procedures.cli.simulated_recording import simulate_with_truth
 from procedures.cli.twin import compare, write_twin
+from procedures.plan import make_plan, save_plan
 from sim_devices.rig.config import RigConfig
 from tests.cli.sim_speed import DEVICES_INSTANT
 
@@ -110,8 +112,10 @@ def test_the_twin_is_what_simulate_and_run_sim_read(tmp_path):
     twin_config = (report / "sim_config.toml").read_text()
     assert "drift_k_per_h = 0.0" in twin_config  # the rig's clock follows the fast servo: a drift would be scaled
     paced.write_text(twin_config + DEVICES_INSTANT)
-    run = _hilcal("run", "--sim", "--yes", "--sim-config", str(paced), "--robot",
-                  str(robot_path), "--out", str(tmp_path / "run"), "--records", str(tmp_path / "records.sqlite"),
+    plan = tmp_path / "plan.json"  # 6 verify poses: what is checked is that the run reads the twin, not its accuracy
+    save_plan(make_plan(robot, 0, n_verify=6, settle_s=0.0, timing=SIM_TIMING.timing()), plan)
+    run = _hilcal("run", "--sim", "--yes", "--sim-config", str(paced), "--robot", str(robot_path), "--plan",
+                  str(plan), "--out", str(tmp_path / "run"), "--records", str(tmp_path / "records.sqlite"),
                   cwd=tmp_path)
     assert run.returncode == 0, run.stdout + run.stderr
     assert json.loads((tmp_path / "run" / "report.json").read_text())["status"] == "complete"
