@@ -168,7 +168,11 @@ class LinkGuard:
         return None
 
     def _retake(self, msg: object, lengths: np.ndarray) -> None:
-        """Back to the pose's approach point, then (unless msg is the move itself) to the pose again."""
+        """Back to the pose's approach point, then (unless msg is the move itself) to the pose again.
+
+        The approach point is held within the legs' travel: an interrupted move that was itself an approach (the
+        plan keeps those at least 1 mm above the lower limit) would otherwise be re-taken from below the limit, a
+        setpoint the controller refuses, which stops the run."""
         target = np.asarray(msg.lengths_mm, dtype=float) if isinstance(msg, m.MoveLegs) else self.last_target
         if target is None:
             return
@@ -179,7 +183,8 @@ class LinkGuard:
         self.journal.event("link_retake", message=type(msg).__name__, off_mm=off_mm,
                            approach_mm=self.approach_mm)
         controller = self.devices.controller
-        controller.move_legs(target - self.approach_mm, self.move_timeout_s)
+        lowest_mm = self.devices.robot.leg_limits[0]
+        controller.move_legs(np.maximum(target - self.approach_mm, lowest_mm), self.move_timeout_s)
         if not isinstance(msg, m.MoveLegs):
             controller.move_legs(target, self.move_timeout_s)
 

@@ -79,11 +79,30 @@ def test_a_short_heartbeat_gap_mid_move_is_ridden_through(sim, devices, tmp_path
         assert 0.2 < held[0] < 1.0
 
 
+def test_a_move_near_the_lower_limit_is_re_taken_within_the_travel(tmp_path):
+    """An approach point 1 mm above the lower leg limit (the plan keeps them at least that far) interrupted by a gap:
+    the re-take's own approach point stays at the limit instead of 2 mm below it (a setpoint the controller refuses,
+    which stopped the run)."""
+    with start_sim(SimConfig(controller=SimControllerConfig(time_scale=10.0))) as fast, \
+            open_devices(station_from_channels(fast.channels())) as devs, Journal(tmp_path / "j.sqlite") as journal:
+        lowest_mm = devs.robot.leg_limits[0]
+        target = np.full(6, lowest_mm + 1.0)
+
+        def moves():
+            yield m.Enable()
+            return (yield m.MoveLegs(m.as_tuple(target), "pose 1 approach"))
+
+        _silence(fast, 0.4, 0.4)  # the 500 mm move takes about 1 s at 10 x 50 mm/s
+        reached = Engine(devs, journal, approach_mm=2.0).run(moves())
+        np.testing.assert_allclose(reached, target, atol=0.01)
+        assert "link_retake" in _kinds(journal) and "link_lost" not in _kinds(journal)
+
+
 def test_a_heartbeat_that_stays_away_ends_the_run_without_motion(sim, devices, tmp_path):
     peer_stats = sim.controller_servers.slcan.peer.stats
     with Journal(tmp_path / "j.sqlite") as journal:
         engine = Engine(devices, journal)
-        _silence(sim, 0.4, 3.0)
+        _silence(sim, 0.4, 8.0)  # far beyond the 1 s grace period, however late a busy machine notices the gap
         sent_before = threading.Event()
         counts: list[int] = []
 
