@@ -484,7 +484,9 @@ def update_method_doc(summary: dict[str, Any], before: dict[str, Any] | None, co
     text = METHOD_DOC.read_text()
     if MARKERS[0] not in text:
         return
-    lines = [f"From `python {command}` on {time.strftime('%Y-%m-%d')} ([coverage_study.md](coverage_study.md)):", ""]
+    lines = [f"From `python {command}` on {time.strftime('%Y-%m-%d')} ([coverage_study.md](coverage_study.md); "
+             "before: the same recordings on commit 92858cb, before the readings' noise, the repeats and the complete "
+             "model's residual entered the errors):", ""]
     for g, s in summary.items():
         was = (before or {}).get(g)
         lines.append(f"- {g}: {_percent(s['within_2'])} of {s['stated']} stated parameters within 2 standard errors, "
