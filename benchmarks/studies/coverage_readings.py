@@ -62,11 +62,12 @@ class Readings:
 
 
 def readings_for(k: int, column_factor: float) -> Readings:
-    """The k-th recording's readings of a kind: the CMM noise alternates, the readings' noise every second seed and
-    the step every eighth (eight seeds cross the CMM with every noise level)."""
-    n_cmm, n_sigma = len(CMM_NOISE_MM), len(LEG_SIGMA_UM)
-    return Readings(LEG_SIGMA_UM[(k // n_cmm) % n_sigma], LEG_STEP_UM[(k // (n_cmm * n_sigma)) % len(LEG_STEP_UM)],
-                    column_factor, CMM_NOISE_MM[k % n_cmm], REPEATS)
+    """The k-th recording's readings of a kind: the CMM noise alternates, the readings' noise changes every second
+    seed and the step with the sum of both indices, so eight seeds give every noise level with both CMMs and both
+    steps, and every CMM with both steps twice."""
+    cmm, sigma = k % len(CMM_NOISE_MM), (k // len(CMM_NOISE_MM)) % len(LEG_SIGMA_UM)
+    return Readings(LEG_SIGMA_UM[sigma], LEG_STEP_UM[(cmm + sigma) % len(LEG_STEP_UM)], column_factor,
+                    CMM_NOISE_MM[cmm], REPEATS)
 
 
 def with_repeats(robot: Robot, measure: np.ndarray, repeats: int) -> np.ndarray:
