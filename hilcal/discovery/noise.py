@@ -337,7 +337,7 @@ def reading_noise(rec: Recording, robot: Robot, residuals: np.ndarray, length_mm
 
     def exact_readings(factor: float, var_factor: float) -> float | None:
         """The level's dof when the readings are at their floor (known) and the instrument's factor is estimated."""
-        return None if var_factor <= 0 else 2.0 * (factor * a + floor * u) ** 2 / (var_factor * a**2)
+        return None if var_factor <= 0 or a <= 0 else 2.0 * (factor * a + floor * u) ** 2 / (var_factor * a**2)
 
     if instrument.source.endswith(REPEATS_SOURCE):
         return ReadingNoise(0.0, 0.0, step, "within the repeated poses' scatter (the instrument's yardstick)", 0.0,
@@ -345,7 +345,7 @@ def reading_noise(rec: Recording, robot: Robot, residuals: np.ndarray, length_mm
     groups = in_a_row(groups)
     if not groups:
         return (ReadingNoise(floor, floor, step, f"{said}; no pose measured again in a row to show more", 0.0, unit),
-                1.0, exact_readings(1.0, var_a / a**2))
+                1.0, exact_readings(1.0, 2.0 / instrument.dof if instrument.dof else 0.0))
     dev, (e_instrument, e_unit) = _repeat_sums(groups, residuals, instrument.covariance, unit)
     repeat_dof = _repeat_dof(groups, instrument.covariance)
     factor, variance, how = split_noise(dev, e_instrument, e_unit, repeat_dof, instrument.dof, floor,
@@ -360,9 +360,9 @@ def reading_noise(rec: Recording, robot: Robot, residuals: np.ndarray, length_mm
     dof = _repeat_dof(groups, instrument.covariance + variance * unit)
     var_dev = 2.0 * dev**2 / dof
     readings = ReadingNoise(variance, floor, step, f"{repeats}: their scatter beyond the instrument's noise",
-                            (var_dev + var_a * (e_instrument / a) ** 2) / e_unit**2, unit)
+                            (var_dev + var_a * (e_instrument / max(a, 1e-300)) ** 2) / e_unit**2, unit)
     # the level T = a + v u with v = (dev - w_a a) / e_unit: an instrument set high leaves v lower (they cancel)
-    w_a, w_u = e_instrument / a, e_unit / u
+    w_a, w_u = e_instrument / max(a, 1e-300), e_unit / u
     var_total = var_a * (1.0 - w_a / w_u) ** 2 + var_dev / w_u**2
     return readings, 1.0, float(2.0 * (a + variance * u) ** 2 / var_total)
 
