@@ -4,10 +4,20 @@ A fit's parameters err by G e, G = (JᵀJ + PᵀP)⁺ Jᵀ its linearised estima
 of J), e what the model does not explain at the measured rows. Two parts:
 - the measurement noise of the noise yardstick (S: per row, the 6 x 6 pose covariance in the residual metric):
   G S Gᵀ. It is what a complete model's parameters scatter by, without the leverage bias of a sandwich built from
-  the fitted residuals;
+  the fitted residuals. Given in its parts (``NoiseParts``), S = I + v D Dᵀ: the instrument's pose noise I and the
+  leg readings' own noise (variance v per reading, carried through D = d pose / d leg length: the model's inputs err
+  too). Where the model is complete, its residual is noise alone, and with 6 N - p degrees of freedom it is the best
+  measure of the noise's level: E[rᵀr] = tr R I Rᵀ + v tr R D Dᵀ Rᵀ (R the residual maker) is solved for the level,
+  the instrument's part kept as stated (or lowered to what the residual leaves, when it is an estimate such as a
+  sphere-fit column, whose convention may not be hilcal's), the rest the readings' variance, never below its floor
+  (the readings' step² / 12) (``split_noise``). Other inputs' noise (the temperature readings through a model's
+  thermal terms, correlated between the rows a smoothed reading serves) enters as F Fᵀ, kept as estimated;
 - the model's misfit, when the model is incomplete. The residual is compared with what the noise alone leaves
-  (tr R S Rᵀ, R the residual maker): it *exceeds the yardstick* when its sum of squares is beyond 1 + 2 cv times
-  that, cv = sqrt(2 / residual dof + 2 / the yardstick's dof) (the spread of both estimates). A model that needed
+  (tr R S Rᵀ, R the residual maker): it *exceeds the yardstick* when the ratio of the two sums of squares is beyond
+  what noise alone exceeds with the probability of two standard deviations (2.3 %): the ratio of two variance
+  estimates is F-distributed with the residual's and the yardstick's degrees of freedom (chi-square over its dof
+  for a stated yardstick), whose quantile, unlike a normal approximation, holds for a yardstick of few degrees of
+  freedom (the repeats of one pose). A model that needed
   shapes no library names (``shapes``) is incomplete too. The misfit is then treated as a discrepancy of the legs'
   lengths, correlated over the workspace: per leg i an independent Gaussian process with variance s_i² and kernel
   ⅓ (exp(-(x_i - x_i')² / 2ℓ²) + exp(-|x - x'|² / 2ℓ²) + [same session]), x the six reported lengths, each over its
@@ -33,12 +43,68 @@ import numpy as np
 from hilcal.stations import StationFrames
 
 EXCEEDS = 2.0
-"""The residual exceeds the noise yardstick beyond this many standard deviations of the comparison."""
+"""The residual exceeds the noise yardstick beyond this many standard deviations of the comparison (in probability:
+the normal distribution's beyond 2, 2.3 %)."""
 LENGTHS = (0.25, 0.5, 1.0, 2.0)
 """Kernel lengths tried, in units of each leg's recorded range of reported length."""
 RCOND = 1e-10
 """Singular values of the column-scaled [J; P] below this fraction of the largest span no direction of the fit."""
 MIN_SHAPE_MM = 1e-6
+
+
+@dataclass(frozen=True)
+class NoiseParts:
+    """The noise yardstick in its parts (module docstring): the instrument's pose covariance and the leg readings'."""
+
+    instrument: np.ndarray
+    """(N, 6, 6) the instrument's pose covariance per row (residual metric)."""
+    instrument_source: str
+    instrument_dof: float | None
+    """Degrees of freedom of the instrument's estimate (None: stated, kept as it is)."""
+    instrument_factor: float
+    """The yardstick's factor on the instrument's estimate (1 unless pooled with repeats that showed less)."""
+    readings_unit: np.ndarray
+    """(N, 6, 6) D Dᵀ: the pose covariance of leg readings with a variance of 1 mm²."""
+    reading_variance_mm2: float
+    reading_floor_mm2: float
+    readings_source: str
+    inputs: np.ndarray | None = None
+    """(6 N, k) F: the other inputs' noise (the temperature readings through the model's thermal terms), with
+    covariance F Fᵀ over all rows (correlated: a smoothed reading serves neighbouring rows); None without."""
+    inputs_source: str = ""
+
+
+@dataclass(frozen=True)
+class NoiseUsed:
+    """The noise every ± carries, by part: the instrument's (its factor on the yardstick's variance) and the leg
+    readings' (sigma per reading), and where their level comes from."""
+
+    instrument_source: str
+    instrument_position_mm: float
+    """RMS length of the instrument's 3-D position noise per pose, as carried."""
+    instrument_factor: float
+    """The carried instrument variance over the yardstick's (1: as the source says)."""
+    reading_sigma_mm: float
+    readings_source: str
+    level_source: str
+    """The yardstick, or the complete model's residual."""
+    inputs_source: str = ""
+    """The other inputs' noise carried (the temperature readings'), in words; empty without."""
+
+    def sentence(self) -> str:
+        lowered = (f", {np.sqrt(self.instrument_factor):.2f}x its sigma" if abs(self.instrument_factor - 1.0) > 5e-3
+                   else "")
+        inputs = f", the {self.inputs_source} through the model's temperature terms" if self.inputs_source else ""
+        return (f"Every ± carries the measurement noise: the instrument's {self.instrument_position_mm * 1000:.2f} µm "
+                f"RMS per pose ({self.instrument_source}{lowered}) and the leg readings' "
+                f"{self.reading_sigma_mm * 1000:.2f} µm each ({self.readings_source}){inputs}; level from "
+                f"{self.level_source}.")
+
+    def to_json(self) -> dict[str, object]:
+        return {"instrument_source": self.instrument_source, "instrument_position_mm": self.instrument_position_mm,
+                "instrument_factor": self.instrument_factor, "leg_reading_sigma_mm": self.reading_sigma_mm,
+                "leg_readings_source": self.readings_source, "level_source": self.level_source,
+                "other_inputs": self.inputs_source or None, "sentence": self.sentence()}
 
 
 @dataclass(frozen=True)
@@ -62,6 +128,8 @@ class Misfit:
     """The largest such ratio."""
     covariance: np.ndarray | None = field(default=None, repr=False, compare=False)
     """(p, p) the misfit's part of the parameters' covariance (None when the model is complete)."""
+    noise: NoiseUsed | None = None
+    """The noise's parts as carried (None when the yardstick was given whole)."""
 
     def sentence(self, what: str = "the parameters") -> str:
         """The model-incomplete sentence (empty for a complete model); `what` names the fitted parameters."""
@@ -89,7 +157,8 @@ class Misfit:
         return {"model_incomplete": self.incomplete, "residual_to_noise": self.residual_to_noise,
                 "tolerance": self.tolerance, "unexplained_shapes": self.shapes,
                 "leg_discrepancy_sigma_mm": list(self.leg_sigma_mm), "kernel_length": self.length,
-                "inflation": self.inflation, "largest_inflation": self.largest, "sentence": self.sentence()}
+                "inflation": self.inflation, "largest_inflation": self.largest, "sentence": self.sentence(),
+                "noise": None if self.noise is None else self.noise.to_json()}
 
 
 def _estimator(J: np.ndarray, prior: np.ndarray | None) -> tuple[np.ndarray, int]:
@@ -149,10 +218,51 @@ def _nnls(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     return nnls(A, b)[0]
 
 
+def variance_ratio_quantile(dof: float, reference_dof: float | None, upper: bool = True) -> float:
+    """The quantile of a ratio of two independent variance estimates (dof over reference_dof; None: the reference is
+    exact) that noise alone exceeds (upper) or falls below with the probability of EXCEEDS standard deviations."""
+    from scipy.special import chdtri, fdtri, ndtr
+
+    tail = float(ndtr(-EXCEEDS))
+    if not reference_dof:
+        return float(chdtri(dof, tail if upper else 1.0 - tail) / dof)
+    return float(fdtri(dof, reference_dof, 1.0 - tail if upper else tail))
+
+
+def _position_mm(S: np.ndarray) -> float:
+    """RMS length of the 3-D position noise per row of a pose covariance (N, 6, 6)."""
+    return float(np.sqrt(np.mean(np.trace(S[:, :3, :3], axis1=1, axis2=2))))
+
+
+def split_noise(observed: float, e_instrument: float, e_unit: float, observed_dof: float,
+                instrument_dof: float | None, floor_mm2: float, *, contradict: bool = True) -> tuple[float, float, str]:
+    """The noise's parts from a sum of squares that noise alone makes (a complete model's residual, the repeats'
+    scatter): (the instrument's factor on its estimate, the leg readings' variance in mm², how they were found).
+
+    The maximum likelihood of the two parts, with E[observed] = factor e_instrument + variance e_unit and the
+    instrument's own estimate (factor 1, `instrument_dof`; None: stated, kept): what the observed sum shows beyond the
+    instrument is the readings' variance, at least its floor; where it shows less, the readings are at their floor and
+    the instrument's estimate is pooled with what the observed sum implies, by their degrees of freedom, unless that is
+    below the estimate beyond their spread (`variance_ratio_quantile`) and `contradict`: then the estimate is
+    contradicted (a column in another convention than hilcal's) and the observed sum alone sets it. The repeats of
+    one pose do not contradict (16-odd degrees of freedom would set the level that decides the model's completeness
+    on too little); a complete model's residual, with 150-odd, does."""
+    excess = (observed - e_instrument) / e_unit if e_unit > 0 else -np.inf
+    if excess >= floor_mm2:
+        return 1.0, float(excess), "beyond"
+    if instrument_dof is None or e_instrument <= 0:
+        return 1.0, floor_mm2, "within"
+    implied = max(observed - floor_mm2 * max(e_unit, 0.0), 0.0) / e_instrument
+    if contradict and implied < variance_ratio_quantile(observed_dof, instrument_dof, upper=False):
+        return float(implied), floor_mm2, "contradicted"
+    return float((instrument_dof + observed_dof * implied) / (instrument_dof + observed_dof)), floor_mm2, "pooled"
+
+
 def honest_covariance(
     J: np.ndarray, r: np.ndarray, noise: np.ndarray, leg_map: np.ndarray, legs_mm: np.ndarray,
     session: np.ndarray | None = None, *, prior: np.ndarray | None = None, frames: StationFrames | None = None,
     noise_dof: float | None = None, shapes: Sequence[np.ndarray] = (), stated: Sequence[int] | None = None,
+    parts: NoiseParts | None = None,
 ) -> tuple[np.ndarray, Misfit]:
     """The parameters' covariance with the measured noise and the model's misfit (module docstring).
 
@@ -161,30 +271,67 @@ def honest_covariance(
     d(pose residual)/d(leg length) per row (the leg offsets' columns of the Jacobian before any projection); legs_mm
     (N, 6) the reported lengths; session (N,) the rows' sessions; prior (k, p) prior rows of the fit; noise_dof the
     yardstick's degrees of freedom (None: stated, exact); shapes (N, 6) leg corrections of the unexplained shapes;
-    stated: the parameters whose inflation is reported (default all)."""
+    stated: the parameters whose inflation is reported (default all); parts: the yardstick in its parts (then
+    `noise` is their sum, and a complete model's residual sets the noise's level)."""
     J, r, S, D = (np.asarray(a, dtype=float) for a in (J, r, noise, leg_map))
     L = np.asarray(legs_mm, dtype=float)
     n, m, p = L.shape[0], r.size, J.shape[1]
     session = np.zeros(n, dtype=int) if session is None else np.asarray(session)
     G, rank = _estimator(J, prior)
-    c_noise = _blocks(G, S) @ G.T
     I_m = np.eye(m)
     projector = I_m if frames is None else frames.project(I_m[:, 0], I_m)[1]
     R = projector - J @ G
-    observed, expected = float(r @ r), float(np.sum(_blocks(R, S) * R))
+    observed = float(r @ r)
+    if parts is None:
+        c_noise = _blocks(G, S) @ G.T
+        expected = float(np.sum(_blocks(R, S) * R))
+    else:
+        c_instrument = _blocks(G, parts.instrument) @ G.T
+        c_unit = _blocks(G, parts.readings_unit) @ G.T
+        e_instrument = float(np.sum(_blocks(R, parts.instrument) * R))
+        e_unit = float(np.sum(_blocks(R, parts.readings_unit) * R))
+        f, v = parts.instrument_factor, parts.reading_variance_mm2
+        S = f * parts.instrument + v * parts.readings_unit
+        c_inputs, e_inputs = np.zeros((p, p)), 0.0
+        if parts.inputs is not None:
+            GF = G @ parts.inputs
+            c_inputs, e_inputs = GF @ GF.T, float(np.sum((R @ parts.inputs) ** 2))
+        c_noise = f * c_instrument + v * c_unit + c_inputs
+        expected = f * e_instrument + v * e_unit + e_inputs
     dof = max(m - rank - (0 if frames is None else frames.n_params), 1)
-    cv = np.sqrt(2.0 / dof + (0.0 if not noise_dof else 2.0 / noise_dof))
     ratio = float(np.sqrt(observed / max(expected, 1e-300)))
-    tolerance = float(np.sqrt(1.0 + EXCEEDS * cv))
+    tolerance = float(np.sqrt(variance_ratio_quantile(dof, noise_dof)))
     shapes = [np.asarray(c, dtype=float) for c in shapes if np.ptp(np.asarray(c), axis=0).max() > MIN_SHAPE_MM]
     stated = list(range(p)) if stated is None else list(stated)
+
+    def used(factor: float, variance: float, level: str) -> NoiseUsed | None:
+        if parts is None:
+            return None
+        return NoiseUsed(parts.instrument_source, float(np.sqrt(factor)) * _position_mm(parts.instrument), factor,
+                         float(np.sqrt(variance)), parts.readings_source, level, parts.inputs_source)
+
     if ratio <= tolerance and not shapes:
-        return c_noise, Misfit(False, ratio, tolerance, 0)
+        if parts is None:
+            return c_noise, Misfit(False, ratio, tolerance, 0)
+        factor, variance, how = split_noise(observed - e_inputs, e_instrument, e_unit, dof, parts.instrument_dof,
+                                            parts.reading_floor_mm2)
+        level = {"beyond": f"the complete model's residual ({dof} degrees of freedom; {ratio:.2f}x the yardstick in "
+                           "RMS), its excess over the instrument's as the readings' noise",
+                 "within": "the yardstick (the complete model's residual shows no more)",
+                 "pooled": f"the instrument's estimate pooled with the complete model's residual ({dof} degrees of "
+                           f"freedom; {ratio:.2f}x the yardstick in RMS)",
+                 "contradicted": f"the complete model's residual ({dof} degrees of freedom; {ratio:.2f}x the "
+                                 "yardstick in RMS, below the instrument's estimate beyond the spread of both)"}[how]
+        return factor * c_instrument + variance * c_unit + c_inputs, Misfit(
+            False, ratio, tolerance, 0, noise=used(factor, variance, level))
     # per leg: the residual in leg lengths and the residual maker's rows that make it
     D_inv = np.linalg.inv(D)
     MR = np.einsum("nij,njk->ink", D_inv, R.reshape(n, 6, m)).reshape(6, n, n, 6)
     rho = np.einsum("nij,nj->in", D_inv, r.reshape(n, 6))
     base = np.einsum("iakl,klj,ibkj->iab", MR, S, MR, optimize=True)
+    if parts is not None and parts.inputs is not None:
+        MRF = MR.reshape(6, n, m) @ parts.inputs
+        base += MRF @ np.swapaxes(MRF, 1, 2)
     W = np.einsum("iakl,klj->jiak", MR, D)  # [leg j of the discrepancy, leg i of the residual, N, N]
     GA = np.einsum("pkl,klj->jpk", G.reshape(p, n, 6), D)  # [leg j, p, N]
     excess = np.maximum(np.sum(rho**2, axis=1) - np.einsum("iaa->i", base), 0.0)
@@ -192,9 +339,9 @@ def honest_covariance(
     best: tuple[float, float, np.ndarray, np.ndarray] | None = None
     for length in LENGTHS:
         K = _kernels(L, session, length)
-        parts = np.einsum("jiak,jkl,jibl->ijab", W, K, W, optimize=True)
-        s2 = _nnls(np.einsum("ijaa->ij", parts), excess)
-        score = _log_likelihood(rho, base, parts, s2, spaces)
+        misfit_parts = np.einsum("jiak,jkl,jibl->ijab", W, K, W, optimize=True)
+        s2 = _nnls(np.einsum("ijaa->ij", misfit_parts), excess)
+        score = _log_likelihood(rho, base, misfit_parts, s2, spaces)
         if best is None or score > best[0]:
             best = (score, length, s2, K)
     assert best is not None
@@ -209,5 +356,7 @@ def honest_covariance(
     diag = np.diag(c_noise)[stated]
     ok = diag > 0
     grown = np.sqrt(np.diag(cov)[stated][ok] / diag[ok]) if ok.any() else np.ones(1)
+    noise_used = None if parts is None else used(parts.instrument_factor, parts.reading_variance_mm2, "the yardstick "
+                                                 "(the model is incomplete: its residual is not noise alone)")
     return cov, Misfit(True, ratio, tolerance, len(shapes), tuple(float(v) for v in np.sqrt(s2)), float(length),
-                       float(np.median(grown)), float(np.max(grown)), c_misfit)
+                       float(np.median(grown)), float(np.max(grown)), c_misfit, noise_used)

@@ -18,7 +18,7 @@ import structlog
 from scipy.optimize import lsq_linear
 
 from hilcal.discovery.context import EffectContext
-from hilcal.discovery.noise import NoiseEstimate, find_repeats
+from hilcal.discovery.noise import NoiseLevel, find_repeats, temperature_noise
 from hilcal.discovery.regression import cluster_robust_covariance, pooled_whitener, whiten
 from hilcal.discovery.selection import Columns, ModelState
 from hilcal.discovery.term_groups import GENERIC, TermGroup
@@ -26,7 +26,7 @@ from hilcal.error_models import GEOMETRIC_42, implicit_residuals
 from hilcal.identification import IdentificationResult, residual_function
 from hilcal.kinematics import KinematicsError, forward_kinematics
 from hilcal.metrics import AccuracySummary
-from hilcal.misfit import Misfit, honest_covariance
+from hilcal.misfit import Misfit, NoiseParts, honest_covariance
 from hilcal.recording import Recording
 from hilcal.robot import Robot
 from hilcal.stations import StationFrames, remove_frames
@@ -327,16 +327,17 @@ def final_fit(p: Problem, groups: list[TermGroup], start: IdentificationResult, 
                                message=f"final refit: {message}")
 
 
-def final_covariance(p: Problem, final: IdentificationResult, groups: list[TermGroup], noise: NoiseEstimate | None,
+def final_covariance(p: Problem, final: IdentificationResult, groups: list[TermGroup], noise: NoiseLevel,
                      shape_scale_mm: np.ndarray, noise_mm: float) -> tuple[np.ndarray, Misfit | None]:
     """The final model's parameter covariance, with the instrument stations' errors projected out (every error carries
-    their uncertainty): with a noise yardstick, the measured noise and the model's misfit (``hilcal.misfit``: the
-    unexplained shapes are the generic groups; the inflation is summarised over the library effects' parameters, or
-    the geometry's without any); without one, the cluster-robust sandwich of the fitted residuals."""
+    their uncertainty): with a noise yardstick, the measured noise in its parts (the instrument's and the leg
+    readings') and the model's misfit (``hilcal.misfit``: the unexplained shapes are the generic groups; the inflation
+    is summarised over the library effects' parameters, or the geometry's without any); without one, the
+    cluster-robust sandwich of the fitted residuals."""
     stations = p.mea.stations
     r, J = linearized(p, groups, final.x) if stations is None else residual_function(
         p.robot, p.mea.legs_mm, p.mea.meas, "forward", p.length_mm, p.phi_of(groups), stations)(final.x)
-    if noise is None:
+    if noise.chosen is None:
         return cluster_robust_covariance(J, r, p.mea.n), None
     raw = linearized(p, groups, final.x)[1]
     frames = None if stations is None else StationFrames.of(stations, p.mea.meas, p.length_mm, p.robot.home[:3])
@@ -347,10 +348,41 @@ def final_covariance(p: Problem, final: IdentificationResult, groups: list[TermG
         else:
             stated += range(k, k + g.n_params)
         k += g.n_params
+    leg_map = raw.reshape(p.mea.n, 6, -1)[:, :, DL0_COLUMNS]
+    readings = noise.readings
+    parts = None
+    if readings is not None:
+        inputs, said = temperature_factor(p, groups, final.x, leg_map)
+        parts = NoiseParts(noise.chosen.covariance[p.measure], noise.chosen.source, noise.instrument_dof,
+                           noise.instrument_factor, readings.unit_covariance[p.measure], readings.variance_mm2,
+                           readings.floor_mm2, readings.source, inputs, said)
     return honest_covariance(
-        J, r, noise.covariance[p.measure], raw.reshape(p.mea.n, 6, -1)[:, :, DL0_COLUMNS], p.mea.legs_mm,
-        p.ctx.session, prior=prior_rows(p, groups, shape_scale_mm, noise_mm), frames=frames, noise_dof=noise.dof,
-        shapes=shapes, stated=stated or range(N_GEO))
+        J, r, noise.covariance[p.measure], leg_map, p.mea.legs_mm, p.ctx.session,
+        prior=prior_rows(p, groups, shape_scale_mm, noise_mm), frames=frames, noise_dof=noise.dof, shapes=shapes,
+        stated=stated or range(N_GEO), parts=parts)
+
+
+def temperature_factor(p: Problem, groups: list[TermGroup], x: np.ndarray, leg_map: np.ndarray
+                       ) -> tuple[np.ndarray | None, str]:
+    """F (6 N, rows) with F Fᵀ the covariance the temperature readings' noise gives the measure rows' pose residuals
+    through the model's temperature terms (an input with errors: its noise, smoothed as the terms use it, times the
+    legs' correction per kelvin, carried to the pose by `leg_map`), and the source in words; None without such
+    terms or a temperature column."""
+    ctx = p.ctx
+    if ctx.temp_c is None or not groups:
+        return None, ""
+    warmer = dataclasses.replace(ctx, temp_c=ctx.temp_c + 1.0)
+    per_kelvin = np.zeros((p.mea.n, 6))
+    k = N_GEO
+    for g in groups:
+        per_kelvin += (g.phi(warmer) - p.phi(g)) @ x[k:k + g.n_params]
+        k += g.n_params
+    noise = temperature_noise(p.rec.temp_c, p.ctx_all.session)
+    if noise is None or not np.any(per_kelvin) or noise.variance_k2 <= 0:
+        return None, ""
+    t = np.einsum("nij,nj->ni", leg_map, per_kelvin)
+    F = noise.sigma_k * (t[:, :, None] * noise.smoothing[p.measure][:, None, :]).reshape(6 * p.mea.n, -1)
+    return F, noise.describe()
 
 
 def _inside_start(residuals: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], x: np.ndarray, lo: np.ndarray,

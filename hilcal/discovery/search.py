@@ -456,7 +456,7 @@ def _searched(rec: Recording, robot: Robot, ctx: EffectContext, *, alpha: float,
     noise = noise_yardstick(rec, robot, residuals_all, p.length_mm, cmm_sigma_mm, pose_sigma, p.ctx_all.session,
                             unit_covariance)
     p.shape_prior = (shape_scales(leg_res[p.measure]), None if noise.chosen is None else max(
-        float(np.sqrt(np.mean(np.trace(noise.chosen.covariance[p.measure], axis1=1, axis2=2)) / 6.0)), 1e-9))
+        float(np.sqrt(np.mean(np.trace(noise.covariance[p.measure], axis1=1, axis2=2)) / 6.0)), 1e-9))
     sel = _select(p, candidates, alpha, n_boot, seed, max_steps, geo, early)
     return _Searched(rec, p, library, untestable, geo, cv_geometry, leg_res, noise, sel)
 
@@ -475,7 +475,7 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
         # What separates the named near-aliases (pose augmentation) needs only the final fit: found meanwhile.
         aliasing = pool.submit(named_aliases, p, sel.chosen, sel.chosen_tests, sel.alike, sel.evidence, final, seed)
         r_final, J_final = linearized(p, chosen, final.x)
-        cov, misfit = final_covariance(p, final, chosen, noise.chosen, scales, noise_mm)
+        cov, misfit = final_covariance(p, final, chosen, noise, scales, noise_mm)
         se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         final = dataclasses.replace(final, covariance=cov, std_errors=se)
         before = verify_accuracy(p, geo, [])
@@ -484,7 +484,7 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
         r_geo, J_geo = linearized(p, [], geo.x)
         ratio = None
         if noise.chosen is not None:
-            ratio = noise_comparison(p.robot, p.mea.meas, noise.chosen.covariance[p.measure], (r_geo, J_geo),
+            ratio = noise_comparison(p.robot, p.mea.meas, noise.covariance[p.measure], (r_geo, J_geo),
                                      (r_final, J_final), p.length_mm)
         shift = session_shift(p.ctx_all, p.measure, leg_residuals(p, final, chosen), rec,
                               lambda rows, offsets: predict(p, final, chosen, rows, offsets), unknown_terms(p, chosen),
@@ -538,4 +538,7 @@ def _describe(s: _Searched, robot: Robot, *, seed: int, include_unconfirmed: boo
         evidence=explain.evidence(answer), left_out_mm=left_out, zero_offsets_mm=offsets,
         unconfirmed=unconfirmed, compensation_after=compensation_after, misfit=misfit,
     )
+    if misfit is not None and misfit.noise is not None:
+        said = misfit.noise.sentence()
+        diag = dataclasses.replace(diag, explanation=f"{diag.explanation} {said}", evidence=f"{diag.evidence} {said}")
     return _with_sentence(diag, misfit.sentence("the parameters"), False) if misfit and misfit.incomplete else diag
