@@ -9,8 +9,8 @@ into the diagnosis' definitions (`true_parameters`): z = (estimate - truth) / st
   joint offset, local heating: `sim_devices.rig.unlisted_concealed`);
 - moved stations: the instrument set up again between sessions (the recording's `station` column, each set-up's
   rigid error planted on the measured poses) with zero shifts planted on some legs, alone or with a library effect;
-- recordings as another simulator makes them (`coverage_readings`): the in-library kinds with one pose measured four
-  times, leg readings with noise of their own (0.5-2 µm) rounded to an encoder's step, a CMM of 5 or 2 µm, and the
+- recordings as another simulator makes them (`stated_errors/readings.py`): the in-library kinds with one pose measured
+  four times, leg readings with noise of their own (0.5-2 µm) rounded to an encoder's step, a CMM of 5 or 2 µm, and the
   `sphere_fit_rms_mm` column as hilcal's registration gives it, or stating 0.7x or 1.4x that (another convention).
 Per group: the share of |z| <= 2, the median and largest |z|, and the median factor by which the stated errors exceed
 the noise part alone (`Diagnosis.misfit`, when the diagnosis states one).
@@ -43,7 +43,10 @@ from scipy.spatial.transform import Rotation
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from _docs import write_doc  # noqa: E402
-from coverage_readings import (  # noqa: E402
+from stated_errors.method_doc import fmt as _fmt  # noqa: E402
+from stated_errors.method_doc import percent as _percent  # noqa: E402
+from stated_errors.method_doc import update_method_doc  # noqa: E402
+from stated_errors.readings import (  # noqa: E402
     CMM_NOISE_MM,
     LEG_SIGMA_UM,
     LEG_STEP_UM,
@@ -87,7 +90,7 @@ residuals), with this module copied into a worktree of that commit (``--json-onl
 recording's stated parameters)."""
 BEFORE_READINGS = ROOT / "docs" / "coverage_study_before_readings.json"
 """This study (every group) run on commit 92858cb, before the leg readings' noise and the residual's level entered
-the yardstick (issue 40), with this module and `coverage_readings.py` copied into an export of that commit."""
+the yardstick (issue 40), with this module and `stated_errors/readings.py` copied into an export of that commit."""
 SEEDS = 8
 """Recordings per kind of case (twice as many with moved stations)."""
 READINGS_SEEDS = 8
@@ -121,7 +124,7 @@ class CoverageCase:
     stations: bool = False
     """Every measure session measured from its own set-up of the instrument (the verify rows from the last)."""
     readings: Readings = dataclasses.field(default_factory=Readings)
-    """How the readings, the column and the plan differ from hilcal's rig (`coverage_readings`)."""
+    """How the readings, the column and the plan differ from hilcal's rig (`stated_errors/readings.py`)."""
 
     @property
     def label(self) -> str:
@@ -350,14 +353,6 @@ def met(s: dict[str, Any]) -> bool:
             and MEDIAN_BAND[0] <= s["median_abs_z"] <= MEDIAN_BAND[1])
 
 
-def _fmt(v: float | None, digits: int = 2) -> str:
-    return "n/a" if v is None else f"{v:.{digits}f}"
-
-
-def _percent(v: float | None) -> str:
-    return "n/a" if v is None else f"{100 * v:.1f} %"
-
-
 def _row(name: str, s: dict[str, Any]) -> str:
     return (f"| {name} | {s['recordings']} | {s['stated']} | {_percent(s['within_2'])} | {_fmt(s['median_abs_z'])} | "
             f"{s['beyond_4']} | {_fmt(s['max_abs_z'])} |")
@@ -453,9 +448,9 @@ def body(results: list[dict[str, Any]], summary: dict[str, Any], quick: bool, be
         f"N(0, {SET_UP_MM} mm) per axis and N(0, {SET_UP_RAD * 1000:.1f} mrad) per rotation axis about the "
         "workspace centre (the verify rows through the last), with the recording's `station` column.",
         f"- {', '.join(READINGS_GROUPS)}: the in-library kinds, {READINGS_SEEDS} seeds each, as another simulator "
-        f"records them (`coverage_readings.py`): one measure pose measured {1 + REPEATS} times in a row (the plan's "
-        f"repeats), every leg reading with Gaussian noise of {', '.join(f'{v:g}' for v in LEG_SIGMA_UM)} µm rounded to "
-        f"an encoder step of {' or '.join(f'{v:g}' for v in LEG_STEP_UM)} µm, a CMM of "
+        f"records them (`stated_errors/readings.py`): one measure pose measured {1 + REPEATS} times in a row (the "
+        f"plan's repeats), every leg reading with Gaussian noise of {', '.join(f'{v:g}' for v in LEG_SIGMA_UM)} µm "
+        f"rounded to an encoder step of {' or '.join(f'{v:g}' for v in LEG_STEP_UM)} µm, a CMM of "
         f"{' or '.join(f'{1000 * v:g}' for v in CMM_NOISE_MM)} µm, and the `sphere_fit_rms_mm` column as hilcal's "
         "registration gives it, or stating 0.7x or 1.4x that.",
         f"- `diagnose(rec, robot, n_boot={N_BOOT}, seed=seed)`; the noise yardstick's instrument part is the "
@@ -472,31 +467,6 @@ def body(results: list[dict[str, Any]], summary: dict[str, Any], quick: bool, be
         "## The ten largest abs(z)", "", *worst_rows, "",
         "## Per recording", "", *per_case,
     ])
-
-
-METHOD_DOC = ROOT / "docs" / "diagnosis.md"
-MARKERS = ("<!-- coverage:begin -->", "<!-- coverage:end -->")
-
-
-def update_method_doc(summary: dict[str, Any], before: dict[str, Any] | None, command: str) -> None:
-    """docs/diagnosis.md's coverage figures (between MARKERS), from this run; `before`: the same recordings on
-    commit 92858cb."""
-    text = METHOD_DOC.read_text()
-    if MARKERS[0] not in text:
-        return
-    lines = [f"From `python {command}` on {time.strftime('%Y-%m-%d')} ([coverage_study.md](coverage_study.md); "
-             "before: the same recordings on commit 92858cb, before the readings' noise, the repeats and the complete "
-             "model's residual entered the errors):", ""]
-    for g, s in summary.items():
-        was = (before or {}).get(g)
-        lines.append(f"- {g}: {_percent(s['within_2'])} of {s['stated']} stated parameters within 2 standard errors, "
-                     f"median abs(z) {_fmt(s['median_abs_z'])}, {s['beyond_4']} beyond 4 (largest "
-                     f"{_fmt(s['max_abs_z'])}); said incomplete in {s['incomplete']} of {s['recordings']} recordings"
-                     + (f"; before: {_percent(was['within_2'])}, median {_fmt(was['median_abs_z'])}, {was['beyond_4']} "
-                        f"beyond 4 (largest {_fmt(was['max_abs_z'])})." if was else "."))
-    head, rest = text.split(MARKERS[0], 1)
-    tail = rest.split(MARKERS[1], 1)[1]
-    METHOD_DOC.write_text(head + MARKERS[0] + "\n" + "\n".join(lines) + "\n" + MARKERS[1] + tail)
 
 
 def run_all(todo: list[CoverageCase], jobs: int) -> list[dict[str, Any]]:

@@ -1,6 +1,6 @@
 """The noise of the model's inputs (hilcal.discovery.noise): the leg readings' step and what a pose measured again in
 a row shows beyond the instrument, the temperature readings' scatter about their smoothing, and the parts a diagnosis
-says it carried. The recordings are the coverage study's (benchmarks/studies/coverage_readings.py): the rig's
+says it carried. The recordings are the coverage study's (benchmarks/studies/stated_errors/readings.py): the rig's
 recording with every leg reading given noise of a known size and rounded to an encoder's step."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from hilcal.discovery.search import diagnose
 ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT / "benchmarks" / "studies"))
 import coverage_study as study  # noqa: E402
-from coverage_readings import Readings  # noqa: E402
+from stated_errors.readings import Readings  # noqa: E402
 
 pytestmark = pytest.mark.timeout(600)
 

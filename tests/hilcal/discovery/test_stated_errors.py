@@ -28,7 +28,7 @@ from sim_devices.rig.config import EffectsConfig, RigConfig
 ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT / "benchmarks" / "studies"))
 import coverage_study as study  # noqa: E402
-from coverage_readings import Readings  # noqa: E402
+from stated_errors.readings import Readings  # noqa: E402
 
 pytestmark = pytest.mark.timeout(600)
 SAID = "The model is incomplete"
