@@ -46,11 +46,13 @@ def _start(tmp: Path, name: str, plan: Path, *args: str) -> subprocess.Popen[str
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path) -> dict[str, tuple[int, str, Path]]:
-    """The same rig seed twice at once: physics on (answered at the terminal) and physics off (unattended)."""
+def runs(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path, small_plan: Path
+         ) -> dict[str, tuple[int, str, Path]]:
+    """The same rig seed twice at once: physics on (answered at the terminal) and physics off (unattended; the small
+    plan: its claim is the refusal, which the first poses already show)."""
     tmp = tmp_path_factory.mktemp("physics")
     (tmp / "sim.toml").write_text(INSTANT_SIM + RIG)
-    procs = {"on": _start(tmp, "on", instant_plan), "off": _start(tmp, "off", instant_plan, "--yes", "--physics",
+    procs = {"on": _start(tmp, "on", instant_plan), "off": _start(tmp, "off", small_plan, "--yes", "--physics",
                                                                    "off")}
     out = {}
     for name, proc in procs.items():
