@@ -458,12 +458,13 @@ def body(results: list[dict[str, Any]], summary: dict[str, Any], quick: bool, be
         "", "## Coverage", "", *HEAD, *table, "", *verdicts, *_readings_before_rows(before_readings),
         *_before_rows(before, results), "",
         "## With and without joint backlash", "",
-        "A pose measured again in a row changes its leg readings by their noise alone; the diagnosis takes the "
-        "direction of each leg's last move from the change of its reading (`hilcal.discovery.context`, moves below "
-        "1 µm keep the previous direction), so with readings of 0.5-2 µm noise a repeat gets a direction by chance, "
-        "and a backlash term of 20-50 µm is then applied the wrong way on some legs of those rows. That is a wrong "
-        "regressor, not noise: no yardstick covers it. The rows with joint backlash carry most of the misses of the "
-        "groups with noisy readings:", "", *_split_rows(results), "",
+        "A pose measured again in a row changes its leg readings by their noise alone. The diagnosis took the "
+        "direction of each leg's last move from the change of its reading (moves below 1 µm kept the previous "
+        "direction), so with readings of 0.5-2 µm noise a repeat got a direction by chance and a backlash term of "
+        "20-50 µm was applied the wrong way on some legs of those rows: a wrong regressor, which no yardstick covers. "
+        "A row commanded to the same pose as the row before it now keeps every leg's direction "
+        "(`hilcal.discovery.context.motion_history`). The groups with noisy readings, split by whether the "
+        "recording has joint backlash:", "", *_split_rows(results), "",
         "## The ten largest abs(z)", "", *worst_rows, "",
         "## Per recording", "", *per_case,
     ])

@@ -98,20 +98,26 @@ def joint_angles(robot: Robot, poses: np.ndarray) -> tuple[np.ndarray, np.ndarra
                  for d, axes in zip((u, v), joint_axes(robot), strict=True))
 
 
-def motion_history(legs_mm: np.ndarray, session: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def motion_history(legs_mm: np.ndarray, session: np.ndarray, cmd: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Direction (+1 extending, -1 retracting, 0 unknown) and size (mm, NaN unknown) of each leg's last move.
 
     The first row of every session has an unknown history. A leg that did not move (below the deadband)
-    keeps the direction and size of its previous move.
+    keeps the direction and size of its previous move. A row commanded to the same pose as the row before it
+    (`cmd`, a pose measured again in a row) did not move either: the difference of its readings is their noise,
+    which at a few µm would otherwise flip the direction at random (issue 40).
     """
     n = len(legs_mm)
     direction = np.zeros((n, 6))
     size = np.full((n, 6), np.nan)
+    same_pose = np.zeros(n, dtype=bool)
+    if cmd is not None:
+        same_pose[1:] = np.all(np.asarray(cmd)[1:] == np.asarray(cmd)[:-1], axis=1)
     for k in range(1, n):
         if session[k] != session[k - 1]:
             continue
         step = legs_mm[k] - legs_mm[k - 1]
-        moved = np.abs(step) >= DIRECTION_DEADBAND_MM
+        moved = (np.abs(step) >= DIRECTION_DEADBAND_MM) & ~same_pose[k]
         direction[k] = np.where(moved, np.sign(step), direction[k - 1])
         size[k] = np.where(moved, np.abs(step), size[k - 1])
     return direction, size
@@ -144,7 +150,7 @@ class EffectContext:
             rows = np.all(np.isfinite(measured), axis=1)
             force[rows] = measured[rows]
         session = detect_sessions(rec.time_s)
-        direction, move = motion_history(rec.legs_mm, session)
+        direction, move = motion_history(rec.legs_mm, session, rec.cmd)
         base, platform = joint_angles(robot, rec.meas)
         start = np.array([rec.time_s[session == s].min() for s in session])
         temp = None

@@ -39,6 +39,18 @@ def test_motion_history_is_unknown_at_each_session_start():
     assert size[1:4, 0].tolist() == [1.0, 0.5, 0.5]
 
 
+def test_a_pose_measured_again_keeps_the_direction_whatever_its_readings_noise():
+    # one leg extends to 101 mm, then the pose is measured three more times in a row: readings 3 µm apart either way
+    legs = np.tile(np.array([[100.0], [101.0], [100.997], [101.003], [100.998]]), (1, 6))
+    cmd = np.repeat(np.array([[0.0] * 6, [1.0] + [0.0] * 5]), [1, 4], axis=0)
+    session = np.zeros(5, dtype=int)
+    direction, size = motion_history(legs, session, cmd)
+    assert direction[:, 0].tolist() == [0, 1, 1, 1, 1]
+    assert np.allclose(size[1:, 0], 1.0)
+    noisy, _ = motion_history(legs, session)  # without the commanded poses, the noise reads as moves
+    assert noisy[:, 0].tolist() == [0, 1, -1, 1, -1]
+
+
 def test_spline_basis_is_a_partition_of_unity_and_clamps():
     x = np.linspace(-5, 15, 41)
     B = bspline_basis(x, 0.0, 10.0, np.array([3.0, 6.0]))
