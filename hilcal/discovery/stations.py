@@ -19,6 +19,7 @@ import numpy as np
 import structlog
 
 from hilcal.discovery.context import EffectContext
+from hilcal.discovery.screen import unknown_rows
 from hilcal.discovery.term_groups import LIBRARY
 from hilcal.identification import identify
 from hilcal.recording import Recording
@@ -42,15 +43,20 @@ def _frames(rec: Recording, robot: Robot) -> StationFrames | None:
 
 def _joint(rec: Recording, robot: Robot, groups: list[Any]) -> dict[int, np.ndarray]:
     """The stations' errors of the joint least-squares fit of the geometry, these groups' parameters and the
-    stations (projected out, ``hilcal.identification``), on the measure rows."""
+    stations (projected out, ``hilcal.identification``), on the measure rows where every group's terms are known:
+    a row whose motion history is unknown (a session's first) is left out when a group depends on it, as the
+    diagnosis leaves it out (`hilcal.discovery.screen`); kept, its unmodelled backlash would move the station of
+    that session, and with it the zero shifts that nearly alias the station."""
     mea = rec.select("measure")
-    phi, names = None, ()
+    phi, names, known = None, (), np.ones(mea.n, dtype=bool)
     if groups:
         ctx = EffectContext.from_recording(rec, robot).rows(rec.phase == "measure")
         phi = np.concatenate([g.phi(ctx) for g in groups], axis=2)
         names = tuple(n for g in groups for n in g.names)
-    return identify(robot, mea.legs_mm, mea.meas, extra_regressors=phi, extra_names=names,
-                    stations=mea.stations).station_frames or {}
+        known[unknown_rows(groups, ctx).rows] = False
+        phi = phi[known]
+    return identify(robot, mea.legs_mm[known], mea.meas[known], extra_regressors=phi, extra_names=names,
+                    stations=mea.stations[known]).station_frames or {}
 
 
 def _moved_mm(a: dict[int, np.ndarray], b: dict[int, np.ndarray], length_mm: float) -> float:

@@ -10,7 +10,10 @@ import dataclasses
 import numpy as np
 import pytest
 
+from hilcal.discovery.context import EffectContext
+from hilcal.discovery.physics import library_groups
 from hilcal.discovery.search import diagnose
+from hilcal.discovery.stations import _joint
 from hilcal.planning import design
 from hilcal.robot import default_robot
 from procedures.cli.simulated_recording import RecordingOptions, simulate_recording
@@ -69,3 +72,21 @@ def test_zero_shifts_between_set_ups_are_found_on_their_legs_only() -> None:
     for sentence in diag.summary:
         for leg in (1, 3, 4, 6):
             assert f"leg {leg} reads" not in sentence, sentence
+
+
+def test_a_session_first_row_whose_history_is_unknown_does_not_move_the_station() -> None:
+    """With a history term (joint backlash) in the model, a session's first row cannot be modelled (the direction
+    of its legs' last move is unknown), so the joint fit of the stations leaves it out, as the diagnosis does: an
+    error of 50 µm on every leg of the second session's first row leaves the second station's error unchanged."""
+    rec, later = _two_sessions({}, 6)
+    ctx = EffectContext.from_recording(rec, ROBOT).rows(rec.phase == "measure")
+    backlash = [g for g in library_groups(ctx, ROBOT)[0] if g.key == "joint_backlash"]
+    assert backlash and backlash[0].history
+    first = int(np.flatnonzero(later & (rec.phase == "measure"))[0])
+    assert ctx.unknown_history()[first].all(), "the second session's first row has no known history"
+    knocked = dataclasses.replace(rec, legs_mm=rec.legs_mm + np.where(np.arange(rec.n)[:, None] == first, 0.05, 0.0))
+    clean, moved = _joint(rec, ROBOT, backlash), _joint(knocked, ROBOT, backlash)
+    np.testing.assert_allclose(moved[1], clean[1], atol=1e-9)
+    np.testing.assert_allclose(clean[1][:3], SET_UP[0], atol=0.02)
+    geometric = _joint(knocked, ROBOT, [])  # without a history term the row is an ordinary one and counts
+    assert np.max(np.abs(geometric[1][:3] - _joint(rec, ROBOT, [])[1][:3])) > 1e-4
