@@ -95,6 +95,21 @@ def predicted_accuracy(robot: Robot, before: ControllerGeometry, errors: np.ndar
     return AccuracySummary.of(reached, poses)
 
 
+def held_out_after(robot: Robot, before: ControllerGeometry, errors: np.ndarray, after: ControllerGeometry,
+                   legs_mm: np.ndarray, measured: np.ndarray, commanded: np.ndarray) -> AccuracySummary:
+    """The pose error a controller holding `after` predicts when it commands held-out poses again (rows read with
+    `before`: their leg readings, measured and commanded poses): the model's pose for the new setpoints plus the
+    model's misfit at each row as measured, which no fit used. With the full geometry uploaded this is the misfit
+    alone; with the leg offsets alone, what the joint positions the controller cannot hold leave is added."""
+    a_true, b_true, dl0 = _true_geometry(robot, errors)
+    model = Geometry(a_true, b_true)
+    q, meas = np.atleast_2d(np.asarray(commanded, dtype=float)), np.atleast_2d(np.asarray(measured, dtype=float))
+    misfit = meas - forward_kinematics(model, np.atleast_2d(legs_mm) + dl0, meas)
+    setpoints = inverse_kinematics(after.ik_geometry(), q)
+    reached = forward_kinematics(model, setpoints - after.l0 + before.l0 + dl0, q)
+    return AccuracySummary.of(reached + misfit, q)
+
+
 def compensate(robot: Robot, before: ControllerGeometry, ident: IdentificationResult | np.ndarray,
                offsets_only: bool, sample_poses: np.ndarray) -> Compensation:
     """Parameters to upload for an identification (or its 42 geometric errors), and the accuracy that model

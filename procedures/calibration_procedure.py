@@ -21,7 +21,7 @@ import numpy as np
 
 from drivers.controller.modbus import CompensationBlock, ParameterSet
 from hilcal.calibration import CalibrationOutcome, calibrate, stated_pose_noise
-from hilcal.compensation import Compensation, ControllerGeometry, compensate, out_of_reach
+from hilcal.compensation import Compensation, ControllerGeometry, compensate, held_out_after, out_of_reach
 from hilcal.kinematics import forward_kinematics, inverse_kinematics
 from hilcal.leg_compensation import LegCompensation
 from hilcal.protocols.registers import Capability
@@ -290,6 +290,12 @@ def calibration_procedure(plan: CalibrationPlan, robot: Robot, options: RunOptio
         return result
     samples = workspace_samples(robot, plan.seed + 1)
     result.compensation = compensate(robot, geom, physics.geometry_x, controller.offsets_only, samples)
+    verify = rec.phase == "verify"
+    if result.compensation.mode == "offsets_only" and physics.block is None and verify.any():
+        # the held-out prediction of the geometry's fit assumes the controller takes the joints too: this one keeps
+        # its a and b, so the verification after the upload measures what the offsets alone leave
+        physics.predicted_with = held_out_after(robot, geom, physics.geometry_x, result.compensation.parameters,
+                                                rec.legs_mm[verify], rec.meas[verify], rec.cmd[verify])
     if physics.block is not None:
         params = result.compensation.parameters
         shifted = ControllerGeometry(params.a, params.b, params.l0 + physics.l0_shift_mm)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hilcal.compensation import ControllerGeometry, compensate, plausibility
+from hilcal.compensation import ControllerGeometry, compensate, held_out_after, plausibility
 from hilcal.identification import identify
 from hilcal.kinematics import Geometry, forward_kinematics, inverse_kinematics
 from hilcal.metrics import AccuracySummary
@@ -54,6 +54,28 @@ def test_offsets_only_is_better_than_nothing_and_reports_the_rest(robot, identif
     rest = AccuracySummary.of(_reached(robot, truth, before, comp.parameters, samples), samples).position_mm.rms
     assert rest < 0.7 * raw
     assert comp.uncompensated.position_mm.rms == pytest.approx(rest, rel=1e-3)
+
+
+def test_the_held_out_prediction_after_an_offsets_upload_is_where_the_platform_goes(robot, identified):
+    """Held-out rows measured before the upload (noisy measured poses), then the offsets uploaded: the prediction is
+    where the platform goes when the new set commands those poses (the truth's), plus each row's measurement noise
+    as it was; with the full set, the noise alone."""
+    truth, ident = identified
+    before = ControllerGeometry(robot.a, robot.b, robot.l0)
+    poses = design.verification_poses(robot, 12, 21)
+    legs = inverse_kinematics(Geometry(before.a, before.b), poses)
+    noise = np.random.default_rng(5).normal(0.0, [0.003] * 3 + [0.0002] * 3, poses.shape)
+    measured = _reached(robot, truth, before, before, poses) + noise
+    samples = design.verification_poses(robot, 30, 9)
+    offsets = compensate(robot, before, ident, offsets_only=True, sample_poses=samples).parameters
+    predicted = held_out_after(robot, before, ident.x, offsets, legs, measured, poses)
+    expected = AccuracySummary.of(_reached(robot, truth, before, offsets, poses) + noise, poses)
+    assert predicted.position_mm.max == pytest.approx(expected.position_mm.max, rel=1e-3)
+    assert predicted.position_mm.rms == pytest.approx(expected.position_mm.rms, rel=1e-3)
+    assert expected.position_mm.rms > 0.05, "the joints the controller keeps leave tenths of a mm"
+    full = compensate(robot, before, ident, offsets_only=False, sample_poses=samples).parameters
+    alone = held_out_after(robot, before, ident.x, full, legs, measured, poses)
+    assert alone.position_mm.rms == pytest.approx(AccuracySummary.of(poses + noise, poses).position_mm.rms, rel=1e-3)
 
 
 def test_plausibility_flags_implausible_sets(robot, identified):
