@@ -42,6 +42,25 @@ def instant_plan(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def calibration_plan(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The default plan's 32 measurement poses with 8 verification poses instead of 24, no settle wait: 51 rows (35
+    measure rows with the repeats, 8 verify poses before and 8 after the upload) instead of `instant_plan`'s 83.
+
+    A run's accuracy claims (what the diagnosis finds, the verification after the upload against the diagnosis'
+    prediction at the same poses) need the full measurement design, not 24 verification poses. make_plan designs the
+    measure poses apart from the verify poses, so these are the default plan's 35 measure rows, the repeated pose's
+    too (tests/cli/test_session_plans.py); only their least-time order differs, as the route is ordered together with
+    the verify poses.
+
+    Not for a claim that the verification after the upload measures within 1.5 times what the diagnosis predicted:
+    that is a ratio of two RMS (or maximum) errors over the verify poses, which 8 poses leave too scattered. On the
+    physics test's rig at seeds 1 to 9 the RMS ratio reached 1.39 and the maximum's 1.68 with these 8 poses, against
+    1.22 and 1.42 with the default plan's 24; those runs keep `instant_plan`."""
+    return _once(tmp_path_factory, "calibration_plan.json",
+                 lambda: make_plan(default_robot(), 0, n_verify=8, settle_s=0.0, timing=SIM_TIMING.timing()))
+
+
+@pytest.fixture(scope="session")
 def small_plan(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """12 measure and 6 verify poses, no settle wait: the sign-off tests' runs, which check the certificate, not the
     calibration."""

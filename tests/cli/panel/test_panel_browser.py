@@ -67,9 +67,10 @@ def _answer_questions(browser, operator: str, checks: dict) -> str:
 
 
 @pytest.mark.timeout(900)
-def test_a_whole_run_driven_from_the_browser_alone(tmp_path, instant_plan):
+def test_a_whole_run_driven_from_the_browser_alone(tmp_path, calibration_plan):
     """Start, prompts, upload approval, report: all on the page (short heartbeat delays on a loaded machine are
-    ridden through by the link guard, so the run completes in one go)."""
+    ridden through by the link guard, so the run completes in one go). The calibration plan: the findings need the
+    default measurement design, and nothing here compares the verification with the prediction."""
     out = tmp_path / "run"
     checks: dict = {}
     proc = None
@@ -79,7 +80,7 @@ def test_a_whole_run_driven_from_the_browser_alone(tmp_path, instant_plan):
             url = f"http://127.0.0.1:{port}/"
             (tmp_path / "sim.toml").write_text(INSTANT_SIM + SCALE_FAULT)  # the page drives it; its pace is not tested
             proc, log = start_panel_run(tmp_path, port, "--sim", "--sim-config", str(tmp_path / "sim.toml"), "--plan",
-                               str(instant_plan), "--out", str(out))
+                               str(calibration_plan), "--out", str(out))
             browser.get(url)
             outcome = _answer_questions(browser, "B. Rowser", checks)
             assert "complete" in outcome, outcome

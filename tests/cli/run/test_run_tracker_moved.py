@@ -1,14 +1,20 @@
 """`hilcal run --sim --instrument tracker` with the simulated tracker set up again during the run (issue 35's live run):
 its `[tracker] move_every_poses = 20` moves it 40 mm and turns it 0.5 deg after every 20 poses it measured.
 
-Checked against the simulator's own log of its moves and the run's own predictions: the run completes and verifies
-what its diagnosis predicted (within 1.5x), its diagnosis names no session shift (none was planted); the journal
-counts the stations where the simulator moved the tracker (83 rows: 5 stations) by the moves the simulator logged; a
-move beyond the searches (400 mm) stops the run saying the tracker was moved and how to go on, and the resume with the
-tracker set up at a new place 30 mm off (the simulated station then publishes that place's approximate alignment, as
-an operator gives it in the station file) completes the run, the station count continuing; free station frames fitted
-to its recording find nothing to correct (why the run writes no station column); at an attended station the operator
-sets the tracker up again when asked and the pose is measured again.
+The moved run measures the default plan (its claim of 1.5x needs the 24 verify poses, tests/cli/conftest.py): a move
+every 20 of its 83 poses sets the tracker up again once in the measure phase, once in the verification before the
+upload and twice in the one after it (5 stations). The run stopped by a move too far measures the calibration plan
+(8 verify poses): its claims are the stop and the resume.
+
+Checked against the simulator's own log of its moves, the plan file and the run's own predictions: the run completes
+and verifies what its diagnosis predicted (within 1.5x), its diagnosis names no session shift (none was planted); the
+journal counts the stations where the simulator moved the tracker by the moves the simulator logged, and the report
+names the poses after which it moved as the plan's rows place them; a move beyond the searches (400 mm) stops the
+run saying the tracker was moved and how to go on, and the resume with the tracker set up at a new place 30 mm off
+(the simulated station then publishes that place's approximate alignment, as an operator gives it in the station
+file) completes the run, the station count continuing; free station frames fitted to its recording find nothing to
+correct (why the run writes no station column); at an attended station the operator sets the tracker up again when
+asked and the pose is measured again.
 """
 
 from __future__ import annotations
@@ -32,27 +38,35 @@ from procedures.journal import Journal
 from procedures.station import open_devices, station_from_channels
 from sim_devices.sim_config import SimConfig, SimTrackerConfig
 from sim_devices.simulator import SimHandle, start_sim
-from tests.cli.run.test_run_tracker import ROWS, _hilcal, _rows
-from tests.cli.sim_speed import INSTANT_SIM
+from tests.cli.run.test_run_tracker import _hilcal, _rows
+from tests.cli.sim_speed import INSTANT_SIM, plan_rows
 
 pytestmark = pytest.mark.timeout(420)
 
-MOVED = INSTANT_SIM.replace("[tracker]\n", "[tracker]\nmove_every_poses = 20\n")
-TOO_FAR = INSTANT_SIM.replace("[tracker]\n", "[tracker]\nmove_every_poses = 20\nmove_mm = 400.0\n")
-SET_UP_ELSEWHERE = INSTANT_SIM.replace("[tracker]\n", "[tracker]\nmove_every_poses = 20\nstation = { x_mm = 6030.0, "
-                                       "y_mm = -1500.0, z_mm = 1800.0, yaw_deg = 165.0 }\n")
+MOVE_EVERY = 20
+"""The moved run's poses between the simulator's moves."""
+TOO_FAR_AFTER = 20
+"""The poses the too-far run measures before the simulator moves the tracker beyond the searches (and the resumed
+simulator's poses between its moves)."""
+MOVED = INSTANT_SIM.replace("[tracker]\n", f"[tracker]\nmove_every_poses = {MOVE_EVERY}\n")
+TOO_FAR = INSTANT_SIM.replace("[tracker]\n", f"[tracker]\nmove_every_poses = {TOO_FAR_AFTER}\nmove_mm = 400.0\n")
+SET_UP_ELSEWHERE = INSTANT_SIM.replace("[tracker]\n", f"[tracker]\nmove_every_poses = {TOO_FAR_AFTER}\n"
+                                       "station = { x_mm = 6030.0, y_mm = -1500.0, z_mm = 1800.0, yaw_deg = 165.0 }\n")
 """The resume's simulator: the tracker set up 30 mm from its default place (x 6000, y -1500, z 1800 mm, yaw 165 deg)."""
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path) -> dict[str, tuple[int, str, Path]]:
-    """The tracker moved 40 mm every 20 poses, and moved 400 mm after 20 poses, at once."""
+def runs(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path, calibration_plan: Path
+         ) -> dict[str, tuple[int, str, Path]]:
+    """The tracker moved 40 mm every 20 poses (the default plan), and moved 400 mm after 20 poses (the calibration
+    plan), at once."""
     tmp = tmp_path_factory.mktemp("moved")
     (tmp / "moved.toml").write_text(MOVED)
     (tmp / "too_far.toml").write_text(TOO_FAR)
+    plans = {"moved": instant_plan, "too_far": calibration_plan}
     procs = {name: _hilcal(tmp, "run", "--sim", "--yes", "--instrument", "tracker", "--operator", "T",
-                           "--sim-config", str(tmp / f"{name}.toml"), "--plan", str(instant_plan),
-                           "--out", str(tmp / name), wait=False) for name in ("moved", "too_far")}
+                           "--sim-config", str(tmp / f"{name}.toml"), "--plan", str(plan),
+                           "--out", str(tmp / name), wait=False) for name, plan in plans.items()}
     return {name: (proc.wait(400), proc.stdout.read(), tmp / name) for name, proc in procs.items()}
 
 
@@ -83,6 +97,17 @@ def _simulator_moves(run: Path) -> list[dict]:
     return moves
 
 
+def _pose_name(k: int, plan: Path) -> str:
+    """The k-th pose (from 1) that a whole run of `plan` measures, named by its phase and its number in the phase: the
+    plan's measure rows (with the repeats), then its verify poses before the upload and again after it."""
+    n_measure, n_verify = plan_rows(plan)
+    for phase, n in (("measure", n_measure), ("verify", n_verify // 2), ("verify after", n_verify // 2)):
+        if k <= n:
+            return f"{phase} pose {k}"
+        k -= n
+    raise ValueError(f"a run of {plan} measures fewer than {k} more poses")
+
+
 def _turn_deg(a: np.ndarray, b: np.ndarray) -> float:
     ra, rb = (Rotation.from_euler("ZYX", p[[5, 4, 3]], degrees=True) for p in (a, b))
     return float(np.degrees((rb * ra.inv()).magnitude()))
@@ -103,32 +128,36 @@ def test_the_run_with_a_moved_tracker_verifies_what_its_diagnosis_predicts(runs)
     assert "station" not in (run / "recording.csv").read_text().splitlines()[0].split(",")
 
 
-def test_the_journal_counts_the_stations_where_the_simulator_moved_the_tracker(runs) -> None:
+def test_the_journal_counts_the_stations_where_the_simulator_moved_the_tracker(runs, instant_plan: Path) -> None:
     code, stdout, run = runs["moved"]
     assert code == 0, stdout
     details = _details(run)
-    assert len(details) == ROWS
+    n_rows = sum(plan_rows(instant_plan))
+    assert len(details) == n_rows
     moves = _simulator_moves(run)
-    assert [mv["after_poses"] for mv in moves] == [20, 40, 60, 80]
+    rows = [mv["after_poses"] for mv in moves]
+    assert rows == list(range(MOVE_EVERY, n_rows, MOVE_EVERY))
+    expected_after = [_pose_name(row, instant_plan) for row in rows]
+    assert {name.rsplit(" pose ", 1)[0] for name in expected_after} == {"measure", "verify", "verify after"}, \
+        "the moves fall in every phase of the run"
     stations = [d["station"] for d in details]
-    assert stations == [1 + sum(k >= mv["after_poses"] for mv in moves) for k in range(ROWS)]
+    assert stations == [1 + sum(k >= row for row in rows) for k in range(n_rows)]
     changes = _events(run, "station_change")
-    assert [c["station"] for c in changes] == [2, 3, 4, 5]
-    for change, mv, row in zip(changes, moves, (20, 40, 60, 80), strict=True):
+    assert [c["station"] for c in changes] == list(range(2, len(moves) + 2))
+    for change, mv, row in zip(changes, moves, rows, strict=True):
         assert details[row]["station_change"] == {k: v for k, v in change.items() if k not in ("phase", "index")}
         assert change["moved_mm"] == pytest.approx(np.linalg.norm(mv["after"][:3] - mv["before"][:3]), abs=0.3)
         assert change["turned_deg"] == pytest.approx(_turn_deg(mv["before"], mv["after"]), abs=0.005)
         np.testing.assert_allclose(details[row]["station_pose"][:3], mv["after"][:3], atol=0.3)
         assert details[row]["widened_searches"] > 0 and change["monument_shift_mm"] > 30.0
     report = json.loads((run / "report.json").read_text())
-    assert report["stations"]["count"] == 5 and report["stations"]["recording_station_column"] is False
-    after = [mv["after_pose"] for mv in report["stations"]["moves"]]
-    assert after == ["measure pose 20", "verify pose 5", "verify after pose 1", "verify after pose 21"]  # 35 + 24
-    assert "5 stations: set up again after measure pose 20, verify pose 5" in stdout
+    assert report["stations"]["count"] == len(moves) + 1 and report["stations"]["recording_station_column"] is False
+    assert [mv["after_pose"] for mv in report["stations"]["moves"]] == expected_after
+    assert f"{len(moves) + 1} stations: set up again after {expected_after[0]}, {expected_after[1]}" in stdout
     assert "Instrument stations" in (run / "report.html").read_text()
 
 
-def test_a_move_beyond_the_searches_stops_the_run_and_the_resume_completes_it(runs) -> None:
+def test_a_move_beyond_the_searches_stops_the_run_and_the_resume_completes_it(runs, calibration_plan: Path) -> None:
     code, stdout, run = runs["too_far"]
     assert code == 3, stdout
     said = " ".join(stdout.split())  # the terminal wraps the message
@@ -136,23 +165,27 @@ def test_a_move_beyond_the_searches_stops_the_run_and_the_resume_completes_it(ru
     assert "Set the tracker up again nearer that place, or give its new approximate alignment in the station file's " \
            "[tracker] alignment" in said
     done_before = _rows(run)
-    assert len(done_before) == 20 and len(_events(run, "tracker_moved")) == 1
+    assert len(done_before) == TOO_FAR_AFTER and len(_events(run, "tracker_moved")) == 1
     resume = said[said.index("hilcal run --resume"):].split()[:6]
     (run.parent / "too_far.toml").write_text(SET_UP_ELSEWHERE)
     resumed = _hilcal(run.parent, *resume[1:], "--yes")
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
     rows = _rows(run)
-    assert len(rows) == ROWS and rows[:20] == done_before
-    stations = [d["station"] for d in _details(run)]
-    assert stations == [1] * 20 + [2] * 20 + [3] * 20 + [4] * 20 + [5] * 3
+    n_rows = sum(plan_rows(calibration_plan))
+    assert len(rows) == n_rows and rows[:TOO_FAR_AFTER] == done_before
+    # the resumed simulator counts its own poses: the tracker set up elsewhere, then moved every TOO_FAR_AFTER poses
+    expected = [1] * TOO_FAR_AFTER + [2 + k // TOO_FAR_AFTER for k in range(n_rows - TOO_FAR_AFTER)]
+    assert [d["station"] for d in _details(run)] == expected
     changes = _events(run, "station_change")
-    assert [c["station"] for c in changes] == [2, 3, 4, 5]
+    assert [c["station"] for c in changes] == list(range(2, expected[-1] + 1))
     assert changes[0]["moved_mm"] == pytest.approx(30.0, abs=0.3) and changes[0]["turned_deg"] < 0.005
     report = json.loads((run / "report.json").read_text())
-    assert report["stations"]["count"] == 5 and report["stations"]["moves"][0]["after_pose"] == "measure pose 20"
+    assert report["stations"]["count"] == expected[-1]
+    assert report["stations"]["moves"][0]["after_pose"] == _pose_name(TOO_FAR_AFTER, calibration_plan)
 
 
-def test_free_station_frames_in_the_fit_would_find_nothing_to_correct(runs, tmp_path: Path) -> None:
+def test_free_station_frames_in_the_fit_would_find_nothing_to_correct(runs, instant_plan: Path, tmp_path: Path
+                                                                      ) -> None:
     """Why the run writes no station column: its rows are registered on the monuments, so a free frame per station
     (hilcal/stations.py) fitted with the geometry comes out at the registrations' noise, and only widens the
     parameters' standard errors."""
@@ -166,9 +199,13 @@ def test_free_station_frames_in_the_fit_would_find_nothing_to_correct(runs, tmp_
     robot = default_robot()
     registered = calibrate(read_recording(run / "recording.csv", robot), robot).identification
     framed = calibrate(read_recording(tmp_path / "stations.csv", robot), robot).identification
-    assert framed.station_frames is not None and set(framed.station_frames) == {1}  # the measure rows' stations 1, 2
-    frame = framed.station_frames[1]
-    assert np.linalg.norm(frame[:3]) < 0.05 and np.degrees(np.linalg.norm(frame[3:])) < 0.005
+    n_measure, _ = plan_rows(instant_plan)
+    measure_moves = sum(mv["after_poses"] < n_measure for mv in _simulator_moves(run))
+    assert measure_moves >= 1, "the measure rows were taken at more than one station"
+    # a frame for each of the measure rows' stations but the first (the column counts stations from 0)
+    assert framed.station_frames is not None and set(framed.station_frames) == set(range(1, measure_moves + 1))
+    for frame in framed.station_frames.values():
+        assert np.linalg.norm(frame[:3]) < 0.05 and np.degrees(np.linalg.norm(frame[3:])) < 0.005
     assert np.all(framed.std_errors >= registered.std_errors * (1 - 1e-9))
 
 
