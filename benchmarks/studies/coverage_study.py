@@ -135,9 +135,10 @@ class CoverageCase:
         return kind if self.readings.plain else f"{kind}; {self.readings.label()}"
 
 
-def cases(quick: bool) -> list[CoverageCase]:
+def cases(quick: bool, seed_base: int = 1000) -> list[CoverageCase]:
     """The study's recordings (quick: one seed of a few kinds). Every recording has a seed of its own, so no two
-    share a noise realization or a draw of effect sizes."""
+    share a noise realization or a draw of effect sizes; another `seed_base` (at least 100000 apart) gives other
+    recordings of the same kinds."""
     n = 1 if quick else SEEDS
     lib = ("leg_compliance", "sensor_scale", "thermal_expansion", "joint_backlash", "oil_column_compliance")
     kinds: list[tuple[str, tuple[str, ...], str | None, int, bool]] = []
@@ -153,12 +154,12 @@ def cases(quick: bool) -> list[CoverageCase]:
     out = []
     for k, (group, fx, u, sessions, stations) in enumerate(kinds):
         repeat = 2 * n if group == "moved stations" else n
-        out += [CoverageCase(group, fx, u, 1000 + 100 * k + s, sessions, 2 if sessions > 1 else 0, stations)
+        out += [CoverageCase(group, fx, u, seed_base + 100 * k + s, sessions, 2 if sessions > 1 else 0, stations)
                 for s in range(repeat)]
     k = len(kinds)
     for group, column in READINGS_GROUPS.items():
         for fx, sessions in library_kinds:
-            out += [CoverageCase(group, fx, None, 1000 + 100 * k + s, sessions, 2 if sessions > 1 else 0,
+            out += [CoverageCase(group, fx, None, seed_base + 100 * k + s, sessions, 2 if sessions > 1 else 0,
                                  readings=readings_for(s, column)) for s in range(1 if quick else READINGS_SEEDS)]
             k += 1
     return out
@@ -497,6 +498,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--json-only", type=Path, default=None, help="write the results here and no doc")
     parser.add_argument("--groups", nargs="+", choices=GROUPS, default=None,
                         help="only these groups (with --json-only: a partial run writes no doc)")
+    parser.add_argument("--seed-base", type=int, default=1000,
+                        help="other recordings of the same kinds (e.g. 200000; needs --json-only): is a group's "
+                             "figure the seeds' luck?")
     parser.add_argument("--before", type=Path, default=BEFORE,
                         help="the same study's JSON on the code before honest standard errors, shown alongside")
     args = parser.parse_args(argv)
@@ -504,7 +508,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     t0 = time.perf_counter()
     if args.groups and args.json_only is None:
         parser.error("--groups needs --json-only: the doc reports every group")
-    results = run_all([c for c in cases(args.quick) if not args.groups or c.group in args.groups], jobs)
+    if args.seed_base != 1000 and args.json_only is None:
+        parser.error("--seed-base needs --json-only: the doc reports the study's own recordings")
+    results = run_all([c for c in cases(args.quick, args.seed_base) if not args.groups or c.group in args.groups],
+                      jobs)
     summary = summarize(results)
     elapsed = time.perf_counter() - t0
     payload = {"summary": summary, "results": results}
