@@ -194,7 +194,7 @@ def summary_sentences(a: Answer) -> list[str]:
                        "structure that no test here can see).")
         elif ratio.ratio_final <= WITHIN_NOISE and noise.chosen is not None:
             out.append("No missing physics: the geometric model explains this recording to within its measurement "
-                       f"noise (residual {ratio.ratio_final:.2f}x the noise; {noise.chosen.describe()}).")
+                       f"noise (residual {ratio.ratio_final:.2f}x the noise; {noise.describe()}).")
         else:
             out.append(f"No missing physics is significant, but the residual is {ratio.ratio_final:.2f}x the noise: "
                        "small structure below the detection limit, or more noise than the source says.")
@@ -209,7 +209,7 @@ def _noise_text(noise: NoiseLevel, ratio: NoiseComparison | None) -> str:
         return " ".join(noise.notes)
     legs = ", ".join(f"leg {i + 1} {v:.2f}" for i, v in enumerate(ratio.per_leg_final))
     text = (f"Residual after the model: {_um(ratio.residual_rms_mm)} RMS, {ratio.ratio_final:.2f}x what the "
-            f"measurement noise alone leaves ({_um(ratio.expected_rms_mm)}; {noise.chosen.describe()}); geometry only: "
+            f"measurement noise alone leaves ({_um(ratio.expected_rms_mm)}; {noise.describe()}); geometry only: "
             f"{ratio.ratio_geometry:.2f}x. Per leg: {legs}.")
     if noise.notes:
         text += " Note: " + "; ".join(noise.notes) + "."
