@@ -108,8 +108,15 @@ def approval_lines(detail: dict[str, Any], diff_first: bool = False) -> list[str
         lines.append(f"verification poses now (measured): {_brief(before)}")
     if after:
         lines.append(f"predicted after the upload: {_brief(after)} ({detail.get('predicted_basis', '')})")
-    if physics and physics.get("enabled", True) and geometry_only and geometry_only != after:
+    offsets_only = detail.get("mode") == "offsets_only"
+    if offsets_only and geometry_only:
+        lines.append(f"with the joint positions too (this controller holds the leg offsets only): "
+                     f"{_brief(geometry_only)}")
+    elif physics and physics.get("enabled", True) and geometry_only and geometry_only != after:
         lines.append(f"predicted with the geometry alone: {_brief(geometry_only)}")
+    if offsets_only and detail.get("uncompensated"):
+        lines.append(f"left uncompensated by the offsets over {WORKSPACE_SAMPLES} workspace poses: "
+                     f"{_brief(detail['uncompensated'])}")
     spread = detail.get("model_uncertainty")
     if spread:
         lines.append(f"parameter uncertainty in the workspace: RMS {spread['rms_position_mm']:.4f} mm, worst pose "

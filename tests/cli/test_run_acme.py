@@ -96,7 +96,8 @@ def acme_run(tmp_path_factory: pytest.TempPathFactory, small_plan: Path) -> dict
         (tmp / "station.toml").write_text(text)
         start_zero = list(peer.zero_um)
         result = CliRunner().invoke(app, ["run", "--station", str(tmp / "station.toml"), "--plan", str(small_plan),
-                                          "--yes", "--operator", "T", "--out", str(tmp / "run")],
+                                          "--operator", "T", "--out", str(tmp / "run")],
+                                    input="y\ny\ny\n",  # answered at the terminal: the approval is printed
                                     env={"HILCAL_RECORDS": str(tmp / "records.sqlite"), "COLUMNS": "200"})
         return {"result": result, "run": tmp / "run", "peer_zero_um": list(peer.zero_um),
                 "peer_kept_um": list(peer.kept_um), "start_zero_um": start_zero, "executes": peer.executes,
@@ -113,6 +114,10 @@ def test_the_run_completes_on_a_device_it_was_not_written_for(acme_run) -> None:
     assert report["status"] == "complete" and report["uploaded"]
     assert acme_run["executes"] > 0, "the device executed setpoints through its apply object (4001h)"
     assert "leg offsets l0 only" in result.output and "read back: matches" in result.output
+    # the approval says what the full geometry would give only as what this controller cannot take, and what stays
+    assert "with the joint positions too (this controller holds the leg offsets only)" in result.output
+    assert "predicted with the geometry alone" not in result.output
+    assert "left uncompensated by the offsets over 64 workspace poses" in result.output
 
 
 def test_the_leg_offsets_are_uploaded_through_the_mapping_and_saved(acme_run) -> None:

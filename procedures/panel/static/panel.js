@@ -207,8 +207,10 @@ function blockSummary(b) {
 function uploadDetail(d) {
   const rows = (d.diff || []).map((r) => `<tr><td>${esc(r.name)}</td><td>${fmt(r.live_mm, 4)}</td>` +
     `<td>${fmt(r.new_mm, 4)}</td><td>${(r.delta_mm >= 0 ? "+" : "") + fmt(r.delta_mm, 4)}</td></tr>`).join("");
-  const geometryOnly = d.physics && d.physics.enabled !== false && d.predicted_geometry_only ?
-    `<tr><th>Predicted with the geometry alone</th><td id="predicted-geometry-only">${brief(d.predicted_geometry_only)}
+  const offsetsOnly = d.mode === "offsets_only";
+  const geometryOnly = (offsetsOnly || (d.physics && d.physics.enabled !== false)) && d.predicted_geometry_only ?
+    `<tr><th>${offsetsOnly ? "With the joint positions too (this controller holds the leg offsets only)"
+      : "Predicted with the geometry alone"}</th><td id="predicted-geometry-only">${brief(d.predicted_geometry_only)}
       </td></tr>` : "";
   return `${physicsDetail(d.physics)}<table class="kv" id="upload-prediction">
       <tr><th>Verification poses now (measured)</th><td>${brief(d.measured_before)}</td></tr>
