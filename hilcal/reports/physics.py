@@ -29,11 +29,19 @@ def _values(values: list[dict[str, Any]]) -> str:
     return "; ".join(cells)
 
 
-def prediction_rows(physics: dict[str, Any], measured_after: dict[str, float] | None) -> list[tuple[str, Any]]:
-    """(label, brief) rows: predicted with the physics, predicted with the geometry alone, measured after."""
-    rows = [("predicted with the physics (held-out verify poses)", physics.get("predicted_with_physics")),
-            ("predicted with the geometry alone (held-out verify poses)", physics.get("predicted_geometry_only")),
-            ("measured at the machine after the upload", measured_after)]
+def prediction_rows(physics: dict[str, Any], measured_after: dict[str, float] | None,
+                    offsets_only: bool = False) -> list[tuple[str, Any]]:
+    """(label, brief) rows: predicted with the physics, predicted with the geometry alone, measured after; for a
+    controller that holds the leg offsets only, the upload's prediction and what the joints would add."""
+    if offsets_only:
+        rows = [("predicted for the leg offsets uploaded (held-out verify poses)",
+                 physics.get("predicted_with_physics")),
+                ("with the joint positions too, which this controller does not hold (held-out verify poses)",
+                 physics.get("predicted_geometry_only"))]
+    else:
+        rows = [("predicted with the physics (held-out verify poses)", physics.get("predicted_with_physics")),
+                ("predicted with the geometry alone (held-out verify poses)", physics.get("predicted_geometry_only"))]
+    rows.append(("measured at the machine after the upload", measured_after))
     return [(label, brief) for label, brief in rows if brief is not None]
 
 
@@ -61,8 +69,9 @@ NOISE_SOURCES = {"sphere_fit_rms_mm column": "from how closely each pose's spher
 """Where the diagnosis' noise yardstick came from, in words."""
 
 
-def physics_html(physics: dict[str, Any] | None, measured_after: dict[str, float] | None) -> str:
-    """The report page's section."""
+def physics_html(physics: dict[str, Any] | None, measured_after: dict[str, float] | None,
+                 offsets_only: bool = False) -> str:
+    """The report page's section (offsets_only: the controller holds the leg offsets only)."""
     if not physics:
         return "<p>no diagnosis (the run stopped before identification)</p>"
     items = "".join(f"<li>{_esc(line)}</li>" for line in physics_lines(physics))
@@ -74,7 +83,7 @@ def physics_html(physics: dict[str, Any] | None, measured_after: dict[str, float
              f"{corrected}</table>") if corrected else ""
     head = "".join(f"<th>{label} ({unit})</th>" for label, unit, _ in FIGURES.values())
     rows = "".join(f"<tr><th>{_esc(label)}</th>" + "".join(f"<td>{_num(brief.get(k), 5)}</td>" for k in BRIEF_KEYS)
-                   + "</tr>" for label, brief in prediction_rows(physics, measured_after))
+                   + "</tr>" for label, brief in prediction_rows(physics, measured_after, offsets_only))
     accuracy = f'<table class="kv"><tr><th></th>{head}</tr>{rows}</table>' if rows else ""
     return (f"<p>geometry uploaded: {_esc(physics.get('geometry_source'))}; compensation block: "
             f"{'uploaded' if physics.get('block') else 'left as the controller held it'}</p>"

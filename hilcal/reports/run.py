@@ -468,7 +468,7 @@ def report_html(r: RunReport) -> str:
 <h2>Least squares against L-infinity</h2>{img(_comparison_plot(r), "LS against L-infinity")}
 <h2>Plausibility of the identified parameters</h2>{plausibility_html(r.plausibility)}
 <h2>Physics: what the run's own recording shows beyond the geometry</h2>
-{physics_html(_jsonable(r.physics), after_brief)}
+{physics_html(_jsonable(r.physics), after_brief, (r.compensation or {}).get("mode") == "offsets_only")}
 <h2>What the run prepared for the controller</h2>{compensation_html(_jsonable(r.compensation))}
 <h2>Upload</h2>{upload_html(_jsonable(r.upload))}
 <h2>Drift since the machine's last calibration</h2>{drift_html(r.drift)}

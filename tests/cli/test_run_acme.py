@@ -141,3 +141,5 @@ def test_the_verification_after_measures_what_the_offsets_alone_predict(acme_run
     assert predicted["max_position_mm"] > 10 * full["max"], "the prediction is the offsets', not the full geometry's"
     for key in ("max_position_mm", "rms_position_mm"):
         assert predicted[key] / 1.5 <= after[key] <= 1.5 * predicted[key], (key, after[key], predicted[key])
+    page = (acme_run["run"] / "report.html").read_text()
+    assert "predicted for the leg offsets uploaded" in page and "predicted with the geometry alone" not in page
