@@ -85,14 +85,19 @@ def _true_geometry(robot: Robot, errors: np.ndarray) -> tuple[np.ndarray, np.nda
     return robot.a + d[:, 0:3], robot.b + d[:, 3:6], d[:, 6]
 
 
+def reached_poses(robot: Robot, before: ControllerGeometry, errors: np.ndarray, after: ControllerGeometry,
+                  poses: np.ndarray) -> np.ndarray:
+    """Where the calibrated model (its 42 errors) puts the platform when a controller holding `after` commands
+    `poses`, the readings' zero being `before`'s."""
+    a_true, b_true, dl0 = _true_geometry(robot, errors)
+    setpoints = inverse_kinematics(after.ik_geometry(), poses)
+    return forward_kinematics(Geometry(a_true, b_true), setpoints - after.l0 + before.l0 + dl0, poses)
+
+
 def predicted_accuracy(robot: Robot, before: ControllerGeometry, errors: np.ndarray,
                        after: ControllerGeometry, poses: np.ndarray) -> AccuracySummary:
     """Pose error the calibrated model (its 42 errors) predicts when a controller with `after` commands `poses`."""
-    a_true, b_true, dl0 = _true_geometry(robot, errors)
-    setpoints = inverse_kinematics(after.ik_geometry(), poses)
-    geometric = setpoints - after.l0 + before.l0 + dl0
-    reached = forward_kinematics(Geometry(a_true, b_true), geometric, poses)
-    return AccuracySummary.of(reached, poses)
+    return AccuracySummary.of(reached_poses(robot, before, errors, after, poses), poses)
 
 
 def held_out_after(robot: Robot, before: ControllerGeometry, errors: np.ndarray, after: ControllerGeometry,
@@ -102,12 +107,9 @@ def held_out_after(robot: Robot, before: ControllerGeometry, errors: np.ndarray,
     model's misfit at each row as measured, which no fit used. With the full geometry uploaded this is the misfit
     alone; with the leg offsets alone, what the joint positions the controller cannot hold leave is added."""
     a_true, b_true, dl0 = _true_geometry(robot, errors)
-    model = Geometry(a_true, b_true)
     q, meas = np.atleast_2d(np.asarray(commanded, dtype=float)), np.atleast_2d(np.asarray(measured, dtype=float))
-    misfit = meas - forward_kinematics(model, np.atleast_2d(legs_mm) + dl0, meas)
-    setpoints = inverse_kinematics(after.ik_geometry(), q)
-    reached = forward_kinematics(model, setpoints - after.l0 + before.l0 + dl0, q)
-    return AccuracySummary.of(reached + misfit, q)
+    misfit = meas - forward_kinematics(Geometry(a_true, b_true), np.atleast_2d(legs_mm) + dl0, meas)
+    return AccuracySummary.of(reached_poses(robot, before, errors, after, q) + misfit, q)
 
 
 def compensate(robot: Robot, before: ControllerGeometry, ident: IdentificationResult | np.ndarray,
