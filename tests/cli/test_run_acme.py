@@ -60,18 +60,10 @@ class AcmeOnRig(AcmePeer):
             self.position_um = [float(v) for v in np.round(rig.reported_lengths() * UM)]
             self.target_um = list(self.position_um)
 
-    def _servo(self) -> None:
-        step = self.speed_mm_s * UM * 0.002
-        while not self._stop.wait(0.002):
-            with self._lock:
-                if self.state != "enabled" or self.position_um == self.target_um:
-                    continue
-                self.position_um = [t if abs(t - p) <= step else p + step * (1 if t > p else -1)
-                                    for p, t in zip(self.position_um, self.target_um, strict=True)]
-                if self.position_um == self.target_um:
-                    moved = np.subtract(self.zero_um, self.start_zero_um)
-                    with self.rig_lock:
-                        self.rig.move_to_lengths((np.array(self.position_um) - moved) / UM)
+    def arrived(self) -> None:
+        moved = np.subtract(self.zero_um, self.start_zero_um)
+        with self.rig_lock:
+            self.rig.move_to_lengths((np.array(self.position_um) - moved) / UM)
 
 
 @pytest.fixture(scope="module")

@@ -129,10 +129,15 @@ class AcmePeer:
         step = self.speed_mm_s * UM * 0.002
         while not self._stop.wait(0.002):
             with self._lock:
-                if self.state != "enabled":
+                if self.state != "enabled" or self.position_um == self.target_um:
                     continue
                 self.position_um = [t if abs(t - p) <= step else p + step * (1 if t > p else -1)
                                     for p, t in zip(self.position_um, self.target_um, strict=True)]
+                if self.position_um == self.target_um:
+                    self.arrived()
+
+    def arrived(self) -> None:
+        """The axes have just reached their target (called under the device's lock); nothing here."""
 
     # ------------------------------------------------------------------ for the tests
 
