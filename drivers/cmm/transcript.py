@@ -8,6 +8,7 @@ written as ``\\xNN`` so the file stays one line per line; everything else is exa
 
 from __future__ import annotations
 
+import re
 import threading
 from datetime import UTC, datetime
 from pathlib import Path
@@ -24,9 +25,12 @@ class TranscriptSink(Protocol):
         """One line: ``direction`` is ``SENT`` or ``RECEIVED``."""
 
 
+_UNPRINTABLE = re.compile(rb"[^\x20-\x7e]")
+
+
 def printable(raw: bytes) -> str:
     """A received line as text: ASCII 32..126 as they are, any other byte as ``\\xNN``."""
-    return "".join(chr(b) if 32 <= b <= 126 else f"\\x{b:02x}" for b in raw)
+    return _UNPRINTABLE.sub(lambda m: b"\\x%02x" % m.group()[0], raw).decode("ascii")
 
 
 def stamp() -> str:

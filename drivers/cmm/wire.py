@@ -19,7 +19,7 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import TypeVar
+from typing import NamedTuple, TypeVar
 
 from hilcal.protocols.ippdme import (
     EVENT_METHODS,
@@ -128,8 +128,7 @@ class ResponseLine:
 # ---------------------------------------------------------------------- tokens
 
 
-@dataclass(frozen=True)
-class _Tok:
+class _Tok(NamedTuple):
     kind: str  # "num", "str", "name", "(", ")", ","
     text: str
     column: int
@@ -138,19 +137,27 @@ class _Tok:
     value: float | str | None = None
 
 
+_OUTSIDE = re.compile(f"[^{chr(PRINTABLE_MIN)}-{re.escape(chr(PRINTABLE_MAX))}]")
+_PLAIN_NUMBER = re.compile(r"[+-]?(?:(\d+)(?:\.(\d*))?|\.(\d+))(?:[Ee][+-]?\d{1,3})?(?![0-9A-Za-z\"_.])")
+"""A well-formed Number (6.1.4.2) not run into what follows it; ``_number`` names what is wrong with any other."""
+
+
 def _check_characters(line: str) -> None:
     """6.1.1: ASCII 32..126 only (the CR LF terminator is removed before parsing); 6.2: the line length."""
     if len(line) > MAX_LINE_CHARS:
         raise LineSyntaxError(line, f"line longer than {MAX_LINE_CHARS} characters")
-    for k, ch in enumerate(line):
-        if not PRINTABLE_MIN <= ord(ch) <= PRINTABLE_MAX:
-            raise LineSyntaxError(line, f"character {ord(ch)} outside ASCII 32..126 (6.1.1)", k + 1)
+    bad = _OUTSIDE.search(line)
+    if bad is not None:
+        raise LineSyntaxError(line, f"character {ord(bad.group())} outside ASCII 32..126 (6.1.1)", bad.start() + 1)
 
 
 def _number(line: str, k: int) -> tuple[str, int]:
     """The Number starting at k (6.1.4.2) and where it ends; LineSyntaxError for a malformed one. "The total number
     of digits shall not exceed 16" is read as NIST's parsers and ``numbersCmdOK.prg`` read it: the digits before the
     exponent (``+1.234567890123456E003`` is a good number there)."""
+    plain = _PLAIN_NUMBER.match(line, k)
+    if plain is not None and sum(len(g) for g in plain.groups() if g) <= MAX_NUMBER_DIGITS:
+        return plain.group(), plain.end()
     start = k
     if k < len(line) and line[k] in "+-":
         k += 1

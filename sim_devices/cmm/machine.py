@@ -20,6 +20,7 @@ import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 import structlog
@@ -37,6 +38,16 @@ log = structlog.get_logger(__name__)
 SAMPLE_S = 0.02
 """A running motion is sampled every this much machine time (stops are noticed, move reports taken)."""
 
+
+
+class MoveListener(Protocol):
+    """Told of the machine's position along every motion (a session's OnMoveReportE daemon)."""
+
+    def wants_moves(self) -> bool:
+        """True while it needs the motion in samples of machine time; an instant machine (``time_scale`` 0) then
+        jumps to each segment's end."""
+
+    def moved(self, position_mm: np.ndarray, dt_s: float) -> None: ...
 
 @dataclass
 class Segment:
@@ -92,7 +103,7 @@ class CmmMachine:
         """Crashes so far: collisions of positioning moves, illegal touches, platform spheres that struck the ball."""
         self.machine_time_s = 0.0
         """Every motion's duration so far, before ``time_scale``."""
-        self.move_listeners: list[Callable[[np.ndarray, float], None]] = []
+        self.move_listeners: list[MoveListener] = []
         self.event_listeners: list[Callable[[Code, str], None]] = []
         """Sessions told of unsolicited errors (an emergency stop, a platform that struck the ball)."""
         self._rng = np.random.default_rng([config.seed, 0xC33])
@@ -261,7 +272,8 @@ class CmmMachine:
         for segment in motion.segments:
             with self.lock:
                 start = self.position_mm.copy()
-            steps = 1 if (scale == 0 and not self.move_listeners) else max(1, math.ceil(segment.duration_s / SAMPLE_S))
+            sampled = scale > 0 or any(listener.wants_moves() for listener in list(self.move_listeners))
+            steps = max(1, math.ceil(segment.duration_s / SAMPLE_S)) if sampled else 1
             dt = segment.duration_s / steps
             for k in range(1, steps + 1):
                 if scale > 0 and dt > 0 and wait(dt * scale):
@@ -273,6 +285,6 @@ class CmmMachine:
                     self.machine_time_s += dt
                     position = self.position_mm.copy()
                 for listener in list(self.move_listeners):
-                    listener(position, dt)
+                    listener.moved(position, dt)
         for done in motion.finish:
             done()

@@ -82,7 +82,7 @@ class CmmSession:
         self._abort_asked = False
         self.state = SessionState()
         self.handlers = Handlers(machine, self.state)
-        machine.move_listeners.append(self._on_move)
+        machine.move_listeners.append(self)
         machine.event_listeners.append(self._on_machine_event)
         self._worker = threading.Thread(target=self._work, name="cmm-sim-session", daemon=True)
         self._worker.start()
@@ -296,7 +296,10 @@ class CmmSession:
 
     # ------------------------------------------------------------------ events
 
-    def _on_move(self, position: np.ndarray, dt: float) -> None:
+    def wants_moves(self) -> bool:
+        return self.state.daemon is not None
+
+    def moved(self, position: np.ndarray, dt: float) -> None:
         """The machine moved (any link's motion): OnMoveReportE's daemon reports when due (6.3.2.7)."""
         daemon = self.state.daemon
         if daemon is None:
@@ -345,7 +348,7 @@ class CmmSession:
             self._cv.notify_all()
         self._worker.join(ABORT_WAIT_S)
         self.state.daemon = None
-        for listeners, own in ((self.machine.move_listeners, self._on_move),
+        for listeners, own in ((self.machine.move_listeners, self),
                                (self.machine.event_listeners, self._on_machine_event)):
             if own in listeners:
                 listeners.remove(own)

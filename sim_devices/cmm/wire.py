@@ -224,7 +224,7 @@ class _Reader:
     def number(self) -> float:
         """``Number`` of 6.1.4.2: a sign, digits with one optional point, an exponent of 1..3 digits; at most 16
         digits before the exponent (as NIST's parsers count, and its part programs use: 16 digits and an exponent)."""
-        m = re.compile(r"[+-]?([0-9]*)(\.?)([0-9]*)").match(self.text, self.pos)
+        m = _NUMBER_BODY.match(self.text, self.pos)
         assert m is not None
         if "." in self.text[m.end() : m.end() + 1]:
             raise self.fail(Code.BAD_ARGUMENT, "a number with two decimal points")
@@ -232,7 +232,7 @@ class _Reader:
         if digits == 0:
             raise self.fail(Code.BAD_ARGUMENT, "a number without digits")
         end = m.end()
-        exponent = re.compile(r"[Ee][+-]?([0-9]*)").match(self.text, end)
+        exponent = _EXPONENT.match(self.text, end)
         if exponent is not None:
             if not 1 <= len(exponent.group(1)) <= 3:
                 raise self.fail(Code.BAD_ARGUMENT, "an exponent needs one to three digits")
@@ -244,9 +244,23 @@ class _Reader:
         return value
 
 
+_NUMBER_BODY = re.compile(r"[+-]?([0-9]*)(\.?)([0-9]*)")
+_EXPONENT = re.compile(r"[Ee][+-]?([0-9]*)")
+_SPACES = re.compile(r" +")
+
+
 def _check_spaces(text: str, tag: str) -> None:
     """6.1.4.2: optional spaces only before or after a comma or a left parenthesis, before a right one, or inside a
     string; the method starts at column 7."""
+    if '"' not in text:  # no string: each run of spaces is checked where it stands
+        for run in _SPACES.finditer(text, 6):
+            if text[run.end():run.end() + 1] in ("(", ")", ","):
+                continue
+            # the run's first space may follow "(" or ","; a second one follows a space
+            i = run.start() if run.start() == 6 or text[run.start() - 1] not in ("(", ",") else run.start() + 1
+            if i < run.end():
+                raise LineError(Code.INCORRECT_ARGUMENTS, tag, "", f"space not allowed at column {i + 1} (6.1.4.2)")
+        return
     inside = False
     for i in range(6, len(text)):
         c = text[i]
