@@ -1,5 +1,6 @@
 """`hilcal run --sim --instrument tracker`: the whole calibration measured with the simulated laser tracker (Leica
-emScon over TCP) on the paper robot with the Table 2 errors.
+emScon over TCP) on the paper robot with the Table 2 errors and tests/cli/run/test_run_physics.py's concealed set-up
+faults, one run for all the claims of a whole run.
 
 Checked at the machine, against what the run itself predicts and what the tracker's specification says: the
 verification after the upload measures what the run's own diagnosis predicted (within 1.5x); concealed set-up faults
@@ -60,25 +61,24 @@ def _rows(run: Path) -> list[tuple]:
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path) -> dict[str, tuple[int, str, Path]]:
-    """The Table 2 rig and the rig with concealed physics, both measured with the tracker, at once."""
+    """The Table 2 rig with concealed physics measured with the tracker: one run for every claim of a whole tracker
+    run (the Table 2 rig alone is measured with the tracker by tests/cli/run/test_run_tracker_moved.py)."""
     tmp = tmp_path_factory.mktemp("tracker")
-    (tmp / "table2.toml").write_text(INSTANT_SIM)
     (tmp / "physics.toml").write_text(INSTANT_SIM + PHYSICS_RIG)
-    procs = {name: _hilcal(tmp, "run", "--sim", "--yes", "--instrument", "tracker", "--operator", "T",
-                           "--sim-config", str(tmp / f"{name}.toml"), "--plan", str(instant_plan),
-                           "--out", str(tmp / name), wait=False) for name in ("table2", "physics")}
-    return {name: (proc.wait(400), proc.stdout.read(), tmp / name) for name, proc in procs.items()}
+    done = _hilcal(tmp, "run", "--sim", "--yes", "--instrument", "tracker", "--operator", "T", "--sim-config",
+                   str(tmp / "physics.toml"), "--plan", str(instant_plan), "--out", str(tmp / "physics"))
+    return {"physics": (done.returncode, done.stdout + done.stderr, tmp / "physics")}
 
 
 def test_the_tracker_run_verifies_what_its_diagnosis_predicts(runs, instant_plan: Path) -> None:
-    code, stdout, run = runs["table2"]
+    code, stdout, run = runs["physics"]
     assert code == 0, stdout
     report = json.loads((run / "report.json").read_text())
     assert report["status"] == "complete" and report["uploaded"] is True
     measured = report["verification"]["after"]["rms_position_mm"]
     predicted = report["physics"]["predicted_with_physics"]["rms_position_mm"]
     assert measured <= 1.5 * predicted, (measured, predicted)
-    assert report["verification"]["before"]["rms_position_mm"] > 20 * measured  # Table 2's errors, corrected
+    assert report["verification"]["before"]["rms_position_mm"] > 20 * measured  # Table 2's errors (and the physics)
     assert set(report["links"]) == {"controller", "tracker", "modbus"}
     rows = _rows(run)
     n_rows = sum(plan_rows(instant_plan))
@@ -95,7 +95,7 @@ def test_the_tracker_run_verifies_what_its_diagnosis_predicts(runs, instant_plan
 
 
 def test_the_certificate_states_the_trackers_mpe_at_its_targets_distances(runs) -> None:
-    code, stdout, run = runs["table2"]
+    code, stdout, run = runs["physics"]
     assert code == 0, stdout
     report = json.loads((run / "report.json").read_text())
     instrument = report["instrument"]
