@@ -6,8 +6,12 @@ fresh machine). Times the venv's installation (`make venv`) and the rest of `mak
 pytest) separately, and writes docs/benchmarks_tests.md with the 20 slowest tests.
 
 Run ``python benchmarks/bench_tests.py`` (uncommitted changes are not measured: commit first). ``--here`` runs
-only pytest, as `make test` does, in this checkout. Targets: `make test` <= 5 min on 2 cores (issue 22), and pytest's
-own wall <= 190 s here (issue 29: 5 min on a machine 1.6x slower, with margin).
+only pytest, as `make test` does, in this checkout. ``--by-process`` adds where the CPU time goes: every Python
+process the suite starts logs its own CPU seconds at exit (a ``sitecustomize`` on PYTHONPATH), summed by kind (the
+pytest workers with the tests they run in-process, `hilcal run`, the simulator, the PDF renderer, other commands);
+processes killed by a signal (the resume tests' SIGKILL) and non-Python ones (Chromium, PostgreSQL) are not in it.
+Targets: `make test` <= 5 min on 2 cores (issue 22), and pytest's own wall <= 190 s here (issue 29: 5 min on a
+machine 1.6x slower, with margin).
 """
 
 from __future__ import annotations
@@ -27,6 +31,47 @@ from _docs import write_doc
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_S = 300.0
 TARGET_PYTEST_S = 190.0
+
+
+PROCESS_LOG = """import atexit, os, sys
+
+
+def _log_cpu():
+    t = os.times()
+    with open({path!r}, "a") as out:
+        out.write(f"{{t.user + t.system:.3f}}\\t{{' '.join(sys.argv[:2])}}\\n")
+
+
+atexit.register(_log_cpu)
+"""
+
+
+def _kind(argv: str) -> str:
+    """What a logged process was, from its first two arguments."""
+    first, _, second = argv.partition(" ")
+    if first == "-c":
+        return "pytest workers (the tests run in-process)"
+    if first.endswith("launcher.py"):
+        return "simulator (`python -m sim_devices.launcher`)"
+    if first.endswith("pdf.py"):
+        return "certificate PDF (`python -m procedures.pdf`)"
+    if first.endswith(("__main__.py", "/hilcal")):
+        return "`hilcal run`" if second == "run" else "other `hilcal` commands"
+    return "other Python processes"
+
+
+def _by_process(log: Path) -> list[str]:
+    """The CPU table of ``--by-process``."""
+    cpu: dict[str, list[float]] = {}
+    for line in log.read_text().splitlines():
+        seconds, _, argv = line.partition("\t")
+        cpu.setdefault(_kind(argv), []).append(float(seconds))
+    total = sum(sum(v) for v in cpu.values())
+    rows = sorted(cpu.items(), key=lambda kv: -sum(kv[1]))
+    return ["", f"CPU seconds by process kind (`--by-process`; {total:.0f} s logged):", "",
+            "| process | processes | CPU s | share | CPU s each |", "|---|---:|---:|---:|---:|",
+            *[f"| {kind} | {len(v)} | {sum(v):.0f} | {100 * sum(v) / total:.0f} % | {sum(v) / len(v):.1f} |"
+              for kind, v in rows]]
 
 
 def _timed(cmd: Sequence[str], cwd: Path, env: dict[str, str]) -> tuple[float, subprocess.CompletedProcess[str]]:
@@ -70,9 +115,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="accepted for make bench; the suite always runs whole")
     parser.add_argument("--here", action="store_true", help="only pytest, in this checkout (no clone, no venv)")
+    parser.add_argument("--by-process", action="store_true", help="also the CPU time by process kind")
     args = parser.parse_args(argv)
     env = {**os.environ, "CI": "true", "OPENBLAS_NUM_THREADS": "1"}  # as `make test` sets it
-    lines, output, code, _ = (_here if args.here else _fresh_clone)(env)
+    with tempfile.TemporaryDirectory(prefix="hilcal-cpu-") as audit:
+        log = Path(audit) / "processes.tsv"
+        if args.by_process:
+            (Path(audit) / "sitecustomize.py").write_text(PROCESS_LOG.format(path=str(log)))
+            env["PYTHONPATH"] = os.pathsep.join(filter(None, [audit, env.get("PYTHONPATH")]))
+        lines, output, code, _ = (_here if args.here else _fresh_clone)(env)
+        by_process = _by_process(log) if args.by_process and log.exists() else []
     summary = re.findall(r"(\d+ (?:passed|failed).*?) in ([\d.]+)s", output)
     slowest = list(dict.fromkeys(re.findall(r"^([\d.]+)s (call|setup|teardown)\s+(\S+)$", output,
                                             flags=re.M)))[:20]  # a line pytest prints twice is one test
@@ -84,6 +136,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               *[f"- Failed: `{name}`" for name in failed],
               "", "| seconds | phase | test |", "|---:|---|---|"]
     lines += [f"| {s} | {phase} | `{name}` |" for s, phase, name in slowest]
+    lines += by_process
     body = "\n".join(lines)
     detail = ("pytest in this checkout" if args.here else "`make test` in a fresh clone") + ", CI=true."
     write_doc("benchmarks_tests.md", "Test suite: wall time and slowest tests", "benchmarks/bench_tests.py", detail,
