@@ -201,9 +201,10 @@ class CmmMachine:
         motion = Motion()
         with self.lock:
             start, r = self.position_mm.copy(), self.ball_radius_mm
-        contact = self.spheres.first_contact(start, target, r)
+        centres = self.spheres.centres_mm()  # a motion is planned at one instant: one look at the platform
+        contact = self.spheres.first_contact(start, target, r, centres)
         if contact is not None:
-            stop = self.config.on_collision == "stop" or self.spheres.inside(target, r) is not None
+            stop = self.config.on_collision == "stop" or self.spheres.inside(target, r, centres) is not None
             self._collide(motion, "goto", "GoTo", start, target, contact, stop)
             if stop:
                 return motion
@@ -219,8 +220,9 @@ class CmmMachine:
         r = tool.ball_radius_mm
         approach = nominal + (tool.approach_mm + r) * direction
         end_of_search = nominal + (r - tool.search_mm) * direction
-        contact = self.spheres.first_contact(start, approach, r)
-        if self.spheres.inside(approach, r) is not None:
+        centres = self.spheres.centres_mm()  # a motion is planned at one instant: one look at the platform
+        contact = self.spheres.first_contact(start, approach, r, centres)
+        if self.spheres.inside(approach, r, centres) is not None:
             assert contact is not None
             self._collide(motion, "illegal_touch", "PtMeas", start, approach, contact, True, Code.ILLEGAL_TOUCH)
             return motion
@@ -231,7 +233,7 @@ class CmmMachine:
                 return motion
         at = motion.move(start, approach, tool.travel_speed_mm_s)
         stroke = tool.approach_mm + tool.search_mm
-        touched = self.spheres.touch(approach, -direction, stroke, r)
+        touched = self.spheres.touch(approach, -direction, stroke, r, centres)
         if plan.miss or touched is None:
             at = motion.move(at, end_of_search, tool.probing_speed_mm_s)
             motion.dwell(at, self.config.probe_time_s)
@@ -247,7 +249,7 @@ class CmmMachine:
             measured = measured + self.config.outlier_mm * direction
         motion.measured_mm = measured
         back = centre + tool.retract_mm * direction if tool.retract_mm >= 0 else approach
-        contact = self.spheres.first_contact(centre, back, r)
+        contact = self.spheres.first_contact(centre, back, r, centres)
         if contact is not None:
             stop = self.config.on_collision == "stop"
             self._collide(motion, "retract", "PtMeas", centre, back, contact, stop)

@@ -83,11 +83,12 @@ class Spheres:
                 out.append((index, b[-1]))
         return out
 
-    def first_contact(self, start: np.ndarray, end: np.ndarray, ball_radius_mm: float
-                      ) -> tuple[int, np.ndarray] | None:
+    def first_contact(self, start: np.ndarray, end: np.ndarray, ball_radius_mm: float,
+                      centres: np.ndarray | None = None) -> tuple[int, np.ndarray] | None:
         """The first sphere the ball, its centre moving straight from start to end, enters: (index, the ball's
-        centre where it meets the surface), or None when the move stays clear. A start inside meets it at once."""
-        centres = self.centres_mm()
+        centre where it meets the surface), or None when the move stays clear. A start inside meets it at once.
+        ``centres``: the spheres as a look at the platform gave them (default: look now)."""
+        centres = self.centres_mm() if centres is None else centres
         reach = self.radius_mm + ball_radius_mm
         d = end - start
         m = start - centres
@@ -107,18 +108,19 @@ class Spheres:
         index = int(np.argmin(np.where(hit, entry, np.inf)))
         return index, start + min(float(entry[index]), 1.0) * d
 
-    def inside(self, point: np.ndarray, ball_radius_mm: float) -> int | None:
+    def inside(self, point: np.ndarray, ball_radius_mm: float, centres: np.ndarray | None = None) -> int | None:
         """The sphere the ball would overlap with its centre at ``point``, or None."""
-        gaps = np.linalg.norm(point - self.centres_mm(), axis=1) - (self.radius_mm + ball_radius_mm)
+        centres = self.centres_mm() if centres is None else centres
+        gaps = np.linalg.norm(point - centres, axis=1) - (self.radius_mm + ball_radius_mm)
         index = int(np.argmin(gaps))
         return index if gaps[index] < -PENETRATION_TOL_MM else None
 
-    def touch(self, start: np.ndarray, direction: np.ndarray, stroke_mm: float, ball_radius_mm: float
-              ) -> tuple[int, float] | None:
+    def touch(self, start: np.ndarray, direction: np.ndarray, stroke_mm: float, ball_radius_mm: float,
+              centres: np.ndarray | None = None) -> tuple[int, float] | None:
         """The ball moving from ``start`` along the unit ``direction`` for up to ``stroke_mm``: (sphere, distance
         travelled) where it first touches a sphere, or None."""
         reach = self.radius_mm + ball_radius_mm
-        m = start - self.centres_mm()
+        m = start - (self.centres_mm() if centres is None else centres)
         b = m @ direction
         c = np.sum(m * m, axis=1) - reach * reach
         disc = b * b - c
