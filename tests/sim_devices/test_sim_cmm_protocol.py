@@ -239,3 +239,37 @@ def test_faults_still_work_on_the_new_protocol(rig: SimulatedRig) -> None:
         outlier = ipp.ptmeas(centre + ROBOT.sphere_radius_mm * up, up)
         normal = ipp.ptmeas(centre + ROBOT.sphere_radius_mm * up, up)
         assert outlier[2] - normal[2] == pytest.approx(server.config.outlier_mm, abs=0.02)
+
+
+def _spaces_one_by_one(text: str) -> int | None:
+    """6.1.4.2's space rule checked space by space (the column of the first space it forbids, or None): spaces
+    outside a String only before or after a comma or a '(', or before a ')'; the method starts at column 7."""
+    inside = False
+    for i in range(6, len(text)):
+        if text[i] == '"':
+            inside = not inside
+        if text[i] != " " or inside:
+            continue
+        j = i
+        while j < len(text) and text[j] == " ":
+            j += 1
+        before = text[i - 1] if i > 6 else ""
+        if not (before in ("(", ",") or text[j:j + 1] in ("(", ")", ",")):
+            return i + 1
+    return None
+
+
+def test_the_space_rule_on_random_lines_is_the_one_space_by_space() -> None:
+    """The server checks runs of spaces at once (lines without a String); on random lines of names, parentheses,
+    commas, points and spaces it forbids the same first space as the rule read space by space."""
+    from sim_devices.cmm.wire import LineError, _check_spaces
+
+    rng = np.random.default_rng(5)
+    for _ in range(20000):
+        text = "00001 " + "".join(rng.choice(list("X(),1. "), size=int(rng.integers(0, 13))))
+        try:
+            _check_spaces(text, "00001")
+            column = None
+        except LineError as err:
+            column = int(str(err).split("column ")[1].split()[0])
+        assert column == _spaces_one_by_one(text), text
