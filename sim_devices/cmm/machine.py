@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -37,6 +38,8 @@ log = structlog.get_logger(__name__)
 
 SAMPLE_S = 0.02
 """A running motion is sampled every this much machine time (stops are noticed, move reports taken)."""
+MIN_WAIT_S = 0.002
+"""The least real time a running motion sleeps at once (``CmmMachine.run``)."""
 
 
 
@@ -269,16 +272,25 @@ class CmmMachine:
 
     def run(self, motion: Motion, wait: Callable[[float], bool]) -> None:
         """Run a motion's segments on the machine clock; ``wait(seconds)`` sleeps and is True when the server
-        stops. MotionStopped if a stop was requested meanwhile (the ball stays where it got to)."""
+        stops. MotionStopped if a stop was requested meanwhile (the ball stays where it got to).
+
+        Each sample is due ``time_scale`` times its machine time after the motion's start, real time; a sample due
+        less than MIN_WAIT_S ahead is taken at once (a sleep of microseconds costs its timer slack, tens of times its
+        length), so the motion lasts its scaled machine time, not its samples' slack."""
         scale = self.config.time_scale
-        for segment in motion.segments:
+        started, due_s = time.monotonic(), 0.0
+        last = len(motion.segments) - 1
+        for index, segment in enumerate(motion.segments):
             with self.lock:
                 start = self.position_mm.copy()
             sampled = scale > 0 or any(listener.wants_moves() for listener in list(self.move_listeners))
             steps = max(1, math.ceil(segment.duration_s / SAMPLE_S)) if sampled else 1
             dt = segment.duration_s / steps
             for k in range(1, steps + 1):
-                if scale > 0 and dt > 0 and wait(dt * scale):
+                due_s += dt * scale
+                ahead_s = started + due_s - time.monotonic()
+                final = index == last and k == steps
+                if ahead_s > 0 and (ahead_s >= MIN_WAIT_S or final) and wait(ahead_s):
                     raise MotionStopped("server")
                 if self.motion_stop.is_set():
                     raise MotionStopped(self.stop_reason)

@@ -154,6 +154,22 @@ def test_abort_during_a_running_motion(rig: SimulatedRig) -> None:
         assert server.machine.position_mm[2] == pytest.approx(stopped_z)  # nothing moved after the abort
 
 
+@pytest.mark.parametrize("time_scale", [0.02, 0.0005])
+def test_a_motion_lasts_its_scaled_machine_time(rig: SimulatedRig, time_scale: float) -> None:
+    """A GoTo of 500 mm at 250 mm/s is 2 s of machine time: it answers % no sooner than time_scale times that (a
+    sample due less than MIN_WAIT_S ahead is taken at once, the motion's last one waited for), ends where it was
+    sent and counts its machine time once."""
+    with served(rig, time_scale=time_scale, home_time_s=0.0) as (server, client):
+        ipp = IppSession(client)
+        ipp.start()
+        before_s = server.machine_time_s
+        begun = time.monotonic()
+        ipp.call("GoTo(X(0), Y(0), Z(500))")
+        assert time.monotonic() - begun >= 2.0 * time_scale
+        assert server.machine.position_mm == pytest.approx([0.0, 0.0, 500.0])
+        assert server.machine_time_s - before_s == pytest.approx(2.0, rel=1e-9)
+
+
 def test_move_reports_while_moving_and_stopping_the_daemon(rig: SimulatedRig) -> None:
     with served(rig) as (_, client):
         ipp = IppSession(client)
