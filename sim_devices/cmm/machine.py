@@ -42,7 +42,6 @@ MIN_WAIT_S = 0.002
 """The least real time a running motion sleeps at once (``CmmMachine.run``)."""
 
 
-
 class MoveListener(Protocol):
     """Told of the machine's position along every motion (a session's OnMoveReportE daemon)."""
 
@@ -51,6 +50,7 @@ class MoveListener(Protocol):
         jumps to each segment's end."""
 
     def moved(self, position_mm: np.ndarray, dt_s: float) -> None: ...
+
 
 @dataclass
 class Segment:

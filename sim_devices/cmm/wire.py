@@ -26,6 +26,9 @@ _TAG = re.compile(r"(?!00000)[0-9]{5}")
 _ETAG = re.compile(r"E(?!0000)[0-9]{4}")
 _BASIC_NAME = re.compile(r"[A-Za-z][A-Za-z0-9]*")
 _ETAG_ARGUMENT = re.compile(r"E[0-9]{4}(?![A-Za-z0-9.(])")
+_NUMBER_BODY = re.compile(r"[+-]?([0-9]*)(\.?)([0-9]*)")
+_EXPONENT = re.compile(r"[Ee][+-]?([0-9]*)")
+_SPACES = re.compile(r" +")
 _METHODS = frozenset(m.value for m in Method)
 _PRINTABLE = bytes(range(PRINTABLE_MIN, PRINTABLE_MAX + 1))
 
@@ -244,34 +247,13 @@ class _Reader:
         return value
 
 
-_NUMBER_BODY = re.compile(r"[+-]?([0-9]*)(\.?)([0-9]*)")
-_EXPONENT = re.compile(r"[Ee][+-]?([0-9]*)")
-_SPACES = re.compile(r" +")
-
-
 def _check_spaces(text: str, tag: str) -> None:
     """6.1.4.2: optional spaces only before or after a comma or a left parenthesis, before a right one, or inside a
-    string; the method starts at column 7."""
-    if '"' not in text:  # no string: each run of spaces is checked where it stands
-        for run in _SPACES.finditer(text, 6):
-            if text[run.end():run.end() + 1] in ("(", ")", ","):
-                continue
-            # the run's first space may follow "(" or ","; a second one follows a space
-            i = run.start() if run.start() == 6 or text[run.start() - 1] not in ("(", ",") else run.start() + 1
-            if i < run.end():
-                raise LineError(Code.INCORRECT_ARGUMENTS, tag, "", f"space not allowed at column {i + 1} (6.1.4.2)")
-        return
-    inside = False
-    for i in range(6, len(text)):
-        c = text[i]
-        if c == '"':
-            inside = not inside
-        if c != " " or inside:
+    string; the method starts at column 7. Each run of spaces outside a String is checked where it stands: its first
+    space may follow "(" or ",", a second one follows a space."""
+    for run in _SPACES.finditer(text, 6):
+        if text.count('"', 6, run.start()) % 2 or text[run.end():run.end() + 1] in ("(", ")", ","):
             continue
-        before = text[i - 1] if i > 6 else ""
-        j = i
-        while j < len(text) and text[j] == " ":
-            j += 1
-        after = text[j : j + 1]
-        if not (before in ("(", ",") or after in ("(", ")", ",")):
+        i = run.start() if run.start() == 6 or text[run.start() - 1] not in ("(", ",") else run.start() + 1
+        if i < run.end():
             raise LineError(Code.INCORRECT_ARGUMENTS, tag, "", f"space not allowed at column {i + 1} (6.1.4.2)")

@@ -276,13 +276,13 @@ def _spaces_one_by_one(text: str) -> int | None:
 
 
 def test_the_space_rule_on_random_lines_is_the_one_space_by_space() -> None:
-    """The server checks runs of spaces at once (lines without a String); on random lines of names, parentheses,
-    commas, points and spaces it forbids the same first space as the rule read space by space."""
+    """The server checks runs of spaces at once; on random lines of names, parentheses, commas, points, quotes and
+    spaces it forbids the same first space as the rule read space by space."""
     from sim_devices.cmm.wire import LineError, _check_spaces
 
     rng = np.random.default_rng(5)
     for _ in range(20000):
-        text = "00001 " + "".join(rng.choice(list("X(),1. "), size=int(rng.integers(0, 13))))
+        text = "00001 " + "".join(rng.choice(list('X(),1. "'), size=int(rng.integers(0, 13))))
         try:
             _check_spaces(text, "00001")
             column = None
