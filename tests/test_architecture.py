@@ -19,6 +19,9 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("hilcal", "drivers", "procedures", "sim_devices", "benchmarks")
 CHECKED_FOR_SIZE = (*PACKAGES, "tests", "tools")
 MAX_LINES = 550
+WRITTEN_BY_OTHERS = "tests/peers"
+"""Test peers written behind an information barrier (tests/peers/__init__.py): kept as their authors wrote them, so
+not held to the size rule here."""
 MAX_MODULES_PER_FOLDER = 20
 """A folder with more modules than this needs rooms (sub-packages by job); ``__init__.py`` does not count."""
 SIM_MAY_USE_FROM_HILCAL = ("hilcal", "hilcal.robot", "hilcal.protocols", "hilcal.recording")
@@ -199,7 +202,7 @@ def test_every_module_is_small_and_says_its_job(folder: str) -> None:
         rel = str(path.relative_to(ROOT))
         text = path.read_text()
         n_lines = len(text.splitlines())
-        if n_lines > MAX_LINES:
+        if n_lines > MAX_LINES and not rel.startswith(WRITTEN_BY_OTHERS):
             problems.append(f"{rel}: {n_lines} lines (at most {MAX_LINES}; split it along its jobs)")
         if not (ast.get_docstring(ast.parse(text)) or "").strip():
             problems.append(f"{rel}: no module docstring saying its one job")

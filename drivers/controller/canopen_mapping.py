@@ -118,6 +118,11 @@ def expand(objects: Objects, count: int, key: str, leg_nodes: Sequence[int]) -> 
     return refs
 
 
+POWER_STATES = ("not_ready", "switch_on_disabled", "ready", "switched_on", "enabled", "quick_stop", "fault_reaction",
+                "fault")
+"""CiA 402-2 §8.4's states, the names a statusword coding may give."""
+
+
 class DeviceControl(_Strict):
     """Controlword values and statusword coding; CiA 402-2 §8.4 (tables 'command coding' and 'state coding')."""
 
@@ -132,6 +137,9 @@ class DeviceControl(_Strict):
     quick_stop: int = 0x0002
     fault_reset: int = 0x0080
     halt_bit: int | None = Field(default=8, ge=0, le=15, description="controlword bit that halts a move (stop)")
+    power_states: bool = Field(default=True, description="false: the device has no CiA 402 power state machine; it "
+                               "follows setpoints whenever its statusword does not code `fault`, and is at rest (takes "
+                               "parameters) when target_reached_bit is set; enable and disable write nothing")
     states: dict[str, tuple[int, int]] = Field(default_factory=lambda: {
         "not_ready": (0x004F, 0x0000), "switch_on_disabled": (0x004F, 0x0040), "ready": (0x006F, 0x0021),
         "switched_on": (0x006F, 0x0023), "enabled": (0x006F, 0x0027), "quick_stop": (0x006F, 0x0007),
@@ -149,14 +157,19 @@ class DeviceControl(_Strict):
     def _refs(cls, v: str) -> str:
         return _ref(v)
 
-    @field_validator("states")
-    @classmethod
-    def _all_states(cls, v: dict[str, tuple[int, int]]) -> dict[str, tuple[int, int]]:
-        needed = {"switch_on_disabled", "ready", "switched_on", "enabled", "fault"}
-        missing = needed - set(v)
+    @model_validator(mode="after")
+    def _all_states(self) -> DeviceControl:
+        unknown = set(self.states) - set(POWER_STATES)
+        if unknown:
+            raise ValueError(f"unknown statusword state(s) {sorted(unknown)}; the states are {', '.join(POWER_STATES)}")
+        needed = {"switch_on_disabled", "ready", "switched_on", "enabled", "fault"} if self.power_states else {"fault"}
+        missing = needed - set(self.states)
         if missing:
             raise ValueError(f"the statusword coding lacks {sorted(missing)}")
-        return v
+        if not self.power_states and set(self.states) != {"fault"}:
+            raise ValueError("a device without power states (power_states = false) codes `fault` only: it is at rest "
+                             "when target_reached_bit is set and moving otherwise")
+        return self
 
 
 class Setpoints(_Strict):
@@ -356,10 +369,13 @@ class TableSlot(Slot):
 
 
 def drive_state(word: int, control: DeviceControl) -> str:
-    """The device-control state a statusword codes (the mapping's coding, CiA 402's by default); "unknown"."""
+    """The device-control state a statusword codes (the mapping's coding, CiA 402's by default); "unknown". A device
+    without power states (``power_states = false``) is "fault", "at_rest" (target reached) or "moving"."""
     for name, (mask, value) in control.states.items():
         if word & mask == value:
             return name
+    if not control.power_states:
+        return "at_rest" if word >> control.target_reached_bit & 1 else "moving"
     return "unknown"
 
 

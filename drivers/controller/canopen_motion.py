@@ -2,8 +2,10 @@
 by SDO through the station's mapping, the heartbeat as the link's liveness, emergencies named in faults.
 
 Enable walks the CiA 402 state machine (CiA 402-2 §8.4: shutdown, switch on, enable operation, each acknowledged by
-the statusword within ``ack_timeout_s``) on every device-control node; disable is "shutdown", stop raises the halt
-bit, estop sends "quick stop" to every node even when the link looks lost, fault reset the 0 -> 1 edge of bit 7.
+the statusword within ``ack_timeout_s``) on every device-control node (a device without one, ``power_states = false``,
+is enabled by the run alone: it follows setpoints whenever it is not in fault); disable is "shutdown", stop raises
+the halt bit, estop sends "quick stop" to every node even when the link looks lost, fault reset the 0 -> 1 edge of
+bit 7.
 ``move_legs`` checks the leg limits before anything is sent, refuses while a node's heartbeat is missing, writes the
 six setpoints once (never again blind: a lost answer is a CommandTimeout), applies them (the mapping's apply object,
 or the profile-position handshake) and waits, bounded, until every node reports target reached with the actual
@@ -79,6 +81,8 @@ class CanopenController(ControllerInterface):
         self._tags = itertools.count(1)
         self._reached = False
         self._halted = False
+        self._enabled = False
+        """A device without power states (``power_states = false``): whether the run has enabled it."""
         self.last_fault_event: tuple[FaultCode, ControllerState] | None = None
 
     # ------------------------------------------------------------------ liveness
@@ -133,7 +137,8 @@ class CanopenController(ControllerInterface):
             return ControllerState.FAULT
         if "quick_stop" in states:
             return ControllerState.ESTOP
-        if states != {"enabled"}:
+        enabled = self._enabled if not self.control.power_states else states == {"enabled"}
+        if not enabled:
             return ControllerState.DISABLED
         reached = all(w >> self.control.target_reached_bit & 1 for w in words.values())
         if not reached:
@@ -191,7 +196,8 @@ class CanopenController(ControllerInterface):
         return state
 
     def enable(self) -> None:
-        """Shutdown, switch on, enable operation (CiA 402-2 transitions 2, 3, 4), each acknowledged."""
+        """Shutdown, switch on, enable operation (CiA 402-2 transitions 2, 3, 4), each acknowledged; a device without
+        power states is only checked to be out of fault."""
         self._refuse_unless({ControllerState.DISABLED}, "ENABLE")
         if self.control.operation_mode is not None:
             for n, (mode, display) in self.map.mode.items():
@@ -202,6 +208,10 @@ class CanopenController(ControllerInterface):
                                          f"{self.control.operation_mode}", RefusalReason.WRONG_STATE, None,
                                          "controller")
         c = self.control
+        if not c.power_states:
+            self._enabled, self._reached = True, False
+            log.info("canopen_enabled", nodes=list(self.map.controlword), power_states=False)
+            return
         self._control(c.shutdown)
         self._await({"ready", "switched_on", "enabled"}, "shutdown")
         self._control(c.switch_on)
@@ -214,6 +224,10 @@ class CanopenController(ControllerInterface):
     def disable(self) -> None:
         """Shutdown from operation enabled (CiA 402-2 transition 8): the legs are no longer servoed."""
         self._refuse_unless(set(MOTION_STATES), "DISABLE")
+        if not self.control.power_states:
+            self._enabled = False
+            log.info("canopen_disabled", power_states=False)
+            return
         self._control(self.control.shutdown)
         self._await({"ready", "switch_on_disabled", "switched_on", "not_ready"}, "shutdown")
         log.info("canopen_disabled")
@@ -232,7 +246,7 @@ class CanopenController(ControllerInterface):
         state = self._refuse_unless({ControllerState.FAULT, ControllerState.ESTOP}, "FAULT_RESET")
         self._control(self.control.disable_voltage)
         self._control(self.control.fault_reset)
-        self._await({"switch_on_disabled", "ready", "not_ready"}, "fault reset")
+        self._await({"switch_on_disabled", "ready", "not_ready", "at_rest", "moving"}, "fault reset")
         self._control(self.control.disable_voltage)
         log.info("canopen_fault_reset", was=state.name)
 

@@ -48,7 +48,9 @@ log = structlog.get_logger(__name__)
 
 SAME_MM = 1e-6
 """A part of the geometry the device does not hold counts as unchanged within this (float rounding)."""
-DISABLED_STATES = {"not_ready", "switch_on_disabled", "ready", "switched_on"}
+DISABLED_STATES = {"not_ready", "switch_on_disabled", "ready", "switched_on", "at_rest"}
+"""Statusword states in which parameters change: CiA 402's not enabled ones, or at rest for a device without power
+states (``device_control.power_states = false``)."""
 
 
 class SdoAbortError(ParamsError):

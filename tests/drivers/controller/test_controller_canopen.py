@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from drivers.controller.base import CommandRefused, ControllerLost, LimitViolation
+from drivers.controller.canopen_mapping import drive_state
 from drivers.controller.canopen_params import CanopenTransportError, NoPreviousSet, SdoAbortError
 from drivers.controller.parameter_sets import CapabilityError, NotDisabled, ParameterSet
 from hilcal.protocols.controller_states import ControllerState
@@ -193,3 +194,24 @@ def test_mapping_that_does_not_fit_the_eds_is_refused_naming_the_key(tmp_path: P
     path.write_text(text.replace('l0_mm = { array = "0x4100" }', 'l0_mm = { array = "0x4010" }'))
     with pytest.raises(StationConfigError, match="is read-only"):
         load_station(path)
+
+
+def test_a_statusword_coding_names_cia_402s_states_or_says_there_are_none(tmp_path: Path) -> None:
+    """A state name outside CiA 402-2 §8.4's is refused (it would never match what the driver waits for); a device
+    without power states codes its fault alone, and its at-rest and moving come from the target reached bit."""
+    (tmp_path / "acme_lx200.eds").write_text(Path(STATION.with_name("acme_lx200.eds")).read_text())
+    text = STATION.read_text().replace("[controller.emcy_codes]", "[controller.device_control]\n{}\n"
+                                       "[controller.emcy_codes]")
+    path = tmp_path / "station.toml"
+    cases = {
+        "states = { operation_enabled = [0x6F, 0x27] }": "unknown statusword state(s) ['operation_enabled']",
+        "power_states = false\nstates = { fault = [4, 4], enabled = [4, 0] }": "codes `fault` only",
+        "power_states = false\nstates = { ready = [4, 0] }": "lacks ['fault']",
+    }
+    for section, expected in cases.items():
+        path.write_text(text.replace("{}", section))
+        with pytest.raises(StationConfigError, match=re.escape(expected)):
+            load_station(path)
+    path.write_text(text.replace("{}", "power_states = false\ntarget_reached_bit = 1\nstates = { fault = [4, 4] }"))
+    control = load_station(path).controller.device_control
+    assert [drive_state(word, control) for word in (0b010, 0b001, 0b110)] == ["at_rest", "moving", "fault"]

@@ -27,25 +27,12 @@ from sim_devices.cmm.server import start_cmm_server
 from sim_devices.rig.rig import SimulatedRig
 from sim_devices.sim_config import SimConfig
 from sim_devices.simulator import published_alignment
+from tests.cli.others.rig_support import RigView
 from tests.drivers.controller.canopen_peer import ACME_EDS, UM, AcmePeer
 
 pytestmark = [pytest.mark.timeout(240)]
-STATION = Path(__file__).parents[1] / "drivers" / "controller" / "acme_lx200_station.toml"
+STATION = Path(__file__).parents[2] / "drivers" / "controller" / "acme_lx200_station.toml"
 _n = itertools.count()
-
-
-class RigView:
-    """The rig as the CMM sees it, read under the lock the controller moves it with."""
-
-    def __init__(self, rig: SimulatedRig, lock: threading.Lock) -> None:
-        self._rig, self._lock = rig, lock
-
-    def true_pose(self) -> np.ndarray:
-        with self._lock:
-            return self._rig.true_pose()
-
-    def to_cmm(self, points_base_mm: np.ndarray) -> np.ndarray:
-        return self._rig.to_cmm(points_base_mm)
 
 
 class AcmeOnRig(AcmePeer):
