@@ -153,7 +153,7 @@ def check_controller(station: Any, robot: Robot) -> DeviceCheck:
     check.details.update(protocol=station.controller.kind, can=f"{bus.get('interface')} {bus.get('channel')}")
     with ExitStack() as stack:
         try:
-            controller, params = open_controller(station, robot, stack, check=False)
+            controller, params = open_controller(station, robot, stack, check=False, writes=False)
             feedback = controller.wait_for_heartbeat(station.motion.connect_timeout_s)
             check.details["state"] = feedback.state.name
             check.details["lengths_mm"] = [round(float(v), 4) for v in feedback.lengths_mm]

@@ -478,16 +478,17 @@ def _reason(err: BaseException) -> str:
     return text or type(err).__name__
 
 
-def open_controller(station: StationConfig, robot: Robot, stack: ExitStack, check: bool
+def open_controller(station: StationConfig, robot: Robot, stack: ExitStack, check: bool, *, writes: bool = True
                      ) -> tuple[ControllerInterface, ParameterInterface]:
-    """The controller and its parameter interface of the station's [controller] kind (closed by ``stack``)."""
+    """The controller and its parameter interface of the station's [controller] kind (closed by ``stack``); check:
+    wait for its heartbeat and read its identity; writes=False: open it without writing anything (`hilcal check`)."""
     motion = station.motion
     if station.controller.kind == "canopen":
         try:
             controller, params = open_canopen(station.controller, station.can.bus_config(), robot,
                                               heartbeat_timeout_s=motion.heartbeat_timeout_s,
                                               ack_timeout_s=motion.ack_timeout_s,
-                                              position_tolerance_mm=motion.position_tolerance_mm)
+                                              position_tolerance_mm=motion.position_tolerance_mm, writes=writes)
             stack.callback(controller.close)
             if check:
                 controller.wait_for_heartbeat(motion.connect_timeout_s)

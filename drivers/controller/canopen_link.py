@@ -80,7 +80,7 @@ class CanopenLink:
 
     def __init__(self, bus_config: dict[str, Any], dictionaries: Mapping[int, ObjectDictionary], *,
                  sdo_timeout_s: float = 0.5, heartbeat_timeout_s: float = 0.1, heartbeat_ms: int | None = None,
-                 bus: Any = None) -> None:
+                 bus: Any = None, writes: bool = True) -> None:
         self.nodes = list(dictionaries)
         self.sdo_timeout_s = sdo_timeout_s
         self.heartbeat_timeout_s = heartbeat_timeout_s
@@ -109,14 +109,15 @@ class CanopenLink:
                 node.nmt.add_heartbeat_callback(lambda state, n=n: self._on_heartbeat(n, state))
                 node.emcy.add_callback(lambda err, n=n: self._on_emcy(n, err))
                 self.remote[n] = node
-            self._producer_periods(heartbeat_ms)
+            self._producer_periods(heartbeat_ms if writes else None, heartbeat_ms)
         except Exception:
             self.close()
             raise
         log.info("canopen_link_opened", endpoint=self.endpoint, consumer_s=self.heartbeat_timeout_s)
 
-    def _producer_periods(self, heartbeat_ms: int | None) -> None:
-        """Set (``heartbeat_ms``) or read each node's producer heartbeat time; the consumer time follows from it."""
+    def _producer_periods(self, heartbeat_ms: int | None, wanted_ms: int | None = None) -> None:
+        """Set (``heartbeat_ms``) or read each node's producer heartbeat time; the consumer time follows from it.
+        ``wanted_ms``: what a run would set, named when a node read (not set: a check writes nothing) produces none."""
         longest = 0
         for n in self.nodes:
             if heartbeat_ms is not None:
@@ -124,6 +125,9 @@ class CanopenLink:
                 period = heartbeat_ms
             else:
                 period = struct.unpack("<H", self.sdo_read(n, *HEARTBEAT_OBJECT, "producer heartbeat time")[:2])[0]
+            if period <= 0 and wanted_ms is not None:
+                raise SdoFailure(f"node {n} produces no heartbeat now (0x1017 = 0); a run sets it to the station's "
+                                 f"heartbeat_ms ({wanted_ms} ms), a check writes nothing", None)
             if period <= 0:
                 raise SdoFailure(f"node {n} produces no heartbeat (0x1017 = 0): give the station's heartbeat_ms, "
                                  "without a heartbeat the link's liveness cannot be known", None)
@@ -183,11 +187,6 @@ class CanopenLink:
     def emergencies_since(self, since_s: float) -> list[Emergency]:
         with self._cond:
             return [e for e in self.emergencies if e.at_s >= since_s]
-
-    def start_nodes(self) -> None:
-        """NMT start (operational) for every node: PDOs flow only there (CiA 301 v4.2.0 §7.3.2.2.1)."""
-        for node in self.remote.values():
-            node.nmt.send_command(0x01)
 
     # ------------------------------------------------------------------ SDO
 

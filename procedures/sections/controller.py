@@ -142,8 +142,9 @@ def resolve_paths(data: dict[str, Any], base: Path) -> None:
 
 def open_canopen(section: CanopenControllerSection, bus_config: dict[str, Any], robot: Any, *,
                  heartbeat_timeout_s: float, ack_timeout_s: float, position_tolerance_mm: float,
-                 bus: Any = None) -> tuple[Any, Any]:
-    """Open the controller's CANopen link: (CanopenController, CanopenParams) sharing it; closing either closes it."""
+                 bus: Any = None, writes: bool = True) -> tuple[Any, Any]:
+    """Open the controller's CANopen link: (CanopenController, CanopenParams) sharing it; closing either closes it.
+    writes=False (`hilcal check`): the producer heartbeat time is read, not set to the section's heartbeat_ms."""
     from drivers.controller.canopen_link import CanopenLink, load_dictionaries
     from drivers.controller.canopen_motion import CanopenController
     from drivers.controller.canopen_params import CanopenParams
@@ -151,7 +152,7 @@ def open_canopen(section: CanopenControllerSection, bus_config: dict[str, Any], 
     resolved = section.resolve()
     link = CanopenLink(bus_config, load_dictionaries(section.eds_path(), section.nodes()),
                        sdo_timeout_s=section.sdo_timeout_s, heartbeat_timeout_s=heartbeat_timeout_s,
-                       heartbeat_ms=section.heartbeat_ms, bus=bus)
+                       heartbeat_ms=section.heartbeat_ms, bus=bus, writes=writes)
     return (CanopenController(link, resolved, robot, ack_timeout_s=ack_timeout_s,
                               position_tolerance_mm=position_tolerance_mm),
             CanopenParams(link, resolved, robot))

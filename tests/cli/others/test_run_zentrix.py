@@ -91,10 +91,26 @@ def device(tmp_path: Path) -> Iterator[tuple[ZentrixHX6, str]]:
         hx6.close()
 
 
+def _heartbeat_ms(channel: str) -> int:
+    """The device's producer heartbeat time (1017h), read by canopen's own SdoClient."""
+    network = canopen.Network()
+    network.connect(interface="virtual", channel=channel)
+    try:
+        return int(network.add_node(NODE_ID, str(EDS)).sdo[0x1017].raw)
+    finally:
+        network.disconnect()
+
+
 def test_the_device_is_checked_by_the_station_file_alone(tmp_path: Path, device) -> None:
+    """`hilcal check` reads and writes nothing: the device keeps its own heartbeat time (the station's heartbeat_ms
+    is what a run sets)."""
     _, channel = device
-    result = runner.invoke(app, ["check", "--station", str(_station(tmp_path, channel, cmm="")), "--json"])
+    before = _heartbeat_ms(channel)
+    station = _station(tmp_path, channel, cmm="")
+    assert before != 100 and "heartbeat_ms = 100" in station.read_text()
+    result = runner.invoke(app, ["check", "--station", str(station), "--json"])
     assert result.exit_code == 0, result.output
+    assert _heartbeat_ms(channel) == before
     (controller,) = json.loads(result.stdout)["devices"]
     assert controller["ok"] and controller["problems"] == []
     assert controller["identity"]["vendor_id"] == 0x5A454E58 and controller["identity"]["node_id"] == NODE_ID
