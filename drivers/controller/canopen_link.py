@@ -100,6 +100,8 @@ class CanopenLink:
         self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
         self.network.connect()
         self.remote: dict[int, canopen.RemoteNode] = {}
+        self.heartbeats_found: dict[int, int] = {}
+        """Each node's producer heartbeat time (ms) before this link set it; put back at close."""
         try:
             for n, od in dictionaries.items():
                 node = canopen.RemoteNode(n, od)
@@ -120,11 +122,11 @@ class CanopenLink:
         ``wanted_ms``: what a run would set, named when a node read (not set: a check writes nothing) produces none."""
         longest = 0
         for n in self.nodes:
-            if heartbeat_ms is not None:
+            period = struct.unpack("<H", self.sdo_read(n, *HEARTBEAT_OBJECT, "producer heartbeat time")[:2])[0]
+            if heartbeat_ms is not None and period != heartbeat_ms:
                 self.sdo_write(n, *HEARTBEAT_OBJECT, struct.pack("<H", heartbeat_ms), "producer heartbeat time")
-                period = heartbeat_ms
-            else:
-                period = struct.unpack("<H", self.sdo_read(n, *HEARTBEAT_OBJECT, "producer heartbeat time")[:2])[0]
+                self.heartbeats_found[n], period = period, heartbeat_ms
+                log.info("canopen_heartbeat_set", node=n, found_ms=self.heartbeats_found[n], set_ms=heartbeat_ms)
             if period <= 0 and wanted_ms is not None:
                 raise SdoFailure(f"node {n} produces no heartbeat now (0x1017 = 0); a run sets it to the station's "
                                  f"heartbeat_ms ({wanted_ms} ms), a check writes nothing", None)
@@ -228,10 +230,16 @@ class CanopenLink:
         self.sdo_write(slot.node, ref.index, ref.subindex, slot.encode(raw), str(slot))
 
     def close(self) -> None:
-        """Stop the notifier and shut the bus down (idempotent)."""
+        """Put back the heartbeat times this link changed (best effort: the device is left as found), stop the
+        notifier and shut the bus down (idempotent)."""
         if self._closed:
             return
         self._closed = True
+        for n, found_ms in self.heartbeats_found.items():
+            try:
+                self.sdo_write(n, *HEARTBEAT_OBJECT, struct.pack("<H", found_ms), "producer heartbeat time")
+            except Exception as err:  # a lost link: the device keeps the run's period until its next reset
+                log.warning("canopen_heartbeat_not_put_back", node=n, found_ms=found_ms, error=str(err))
         with contextlib.suppress(Exception):
             self.network.disconnect()
         log.info("canopen_link_closed", endpoint=self.endpoint)

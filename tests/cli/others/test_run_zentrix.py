@@ -124,7 +124,7 @@ def test_the_device_is_checked_by_the_station_file_alone(tmp_path: Path, device)
 def test_upload_and_rollback_round_trip_the_geometry_exactly(tmp_path: Path, device) -> None:
     hx6, channel = device
     station = _station(tmp_path, channel)
-    old = _device_geometry(channel)
+    old, heartbeat_ms = _device_geometry(channel), _heartbeat_ms(channel)
     # REAL32 holds these exactly: multiples of 1/64 mm below 2^17
     new = old.astype(float).copy()
     new[:, 0:6] = np.round(old[:, 0:6] * 64) / 64 + (np.arange(36).reshape(6, 6) % 7 - 3) / 16
@@ -137,6 +137,7 @@ def test_upload_and_rollback_round_trip_the_geometry_exactly(tmp_path: Path, dev
                                  db])
     assert result.exit_code == 0, result.output
     assert np.array_equal(_device_geometry(channel), new.astype(np.float32))
+    assert _heartbeat_ms(channel) == heartbeat_ms != 100, "the station's heartbeat_ms was set for the upload only"
     hx6.close()  # a power cycle: the device starts again from what 1010h stored
     again = ZentrixHX6(channel, NODE_ID, storage_path=tmp_path / "nvm.json")
     try:
@@ -182,6 +183,7 @@ def blind_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
                        limits=((-5000.0, 5000.0),) * 3)
     zero_nm = np.round(_factory_geometry()[:, 6].astype(float) * 1e6)  # as the device counts them (manual §2)
     hx6 = ZentrixHX6(channel, NODE_ID, plant=RigPlant(rig, lock, zero_nm / 1e6), storage_path=tmp / "nvm.json")
+    heartbeat_ms = _heartbeat_ms(channel)
     try:
         alignment = published_alignment(rig, 2.0, 0.02, 3)
         _station(tmp, channel, f'[cmm]\nurl = "{cmm.url}"\ntool = "Probe1"\nalignment = '
@@ -192,7 +194,7 @@ def blind_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
                                      "--operator", "T", "--out", str(tmp / "run"), "--yes"],
                                env={"HILCAL_RECORDS": str(tmp / "records.sqlite"), "COLUMNS": "200"})
         return {"result": result, "run": tmp / "run", "moves": hx6.moves, "transcript": list(cmm.transcript),
-                "held": _device_geometry(channel)}
+                "held": _device_geometry(channel), "heartbeats_ms": (heartbeat_ms, _heartbeat_ms(channel))}
     finally:
         hx6.close()
         cmm.close()
@@ -203,6 +205,8 @@ def test_a_whole_run_on_the_two_devices_completes_and_corrects_the_machine(blind
     assert result.exit_code == 0, result.output
     report = json.loads((blind_run["run"] / "report.json").read_text())
     assert report["status"] == "complete" and report["uploaded"] and blind_run["moves"] > 0
+    found, after_run = blind_run["heartbeats_ms"]
+    assert after_run == found != 100, "the device is left with its own heartbeat time, not the station's"
     before, after = report["verification"]["before"], report["verification"]["after"]
     predicted = report["compensation"]["predicted_held_out"]
     assert after["rms_position_mm"] < before["rms_position_mm"] / 5

@@ -2,10 +2,9 @@
 predicted accuracy with its band, the forecast remaining time, the poses as the plan chooses them, and the stop.
 
 The run's pace is not what is tested, so the servo is the near-instant one (tests/cli/sim_speed.py); the CMM probes
-at 1/40 of real time (about 0.5 s a pose), so a live prediction stays on the page long enough for a busy machine's
-browser to read it before the stop (at 1/150, 0.15 s a pose, a fresh-clone run on a loaded 2-core machine, whose
-page updates lagged the server by up to 6.6 s, waited 120 s for one in vain). Once the measure phase has stopped the
-run is ended (the whole run from the page is tests/cli/panel/test_panel_browser.py's).
+at 1/40 of real time (about 0.5 s a pose), so a live prediction stays on the page for seconds before the stop: on a
+loaded 2-core machine the page's updates lagged the server by up to 6.6 s. Once the measure phase has stopped the run
+is ended (the whole run from the page is tests/cli/panel/test_panel_browser.py's).
 """
 
 from __future__ import annotations
@@ -25,7 +24,11 @@ from tests.cli.sim_speed import INSTANT_SIM, instant_timing
 
 CMM_PACE = 1 / 40
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = pytest.mark.timeout(480)
+FIRST_PREDICTION_S = 300
+"""The bound on the wait for the first live prediction: the measure rows before it (the repeats, then rows until every
+parameter is identifiable) each take a decision's CPU time, which a loaded 2-core machine running three test workers
+stretched beyond 120 s in fresh-clone CI runs (alone: the whole test in 82 s)."""
 
 
 @pytest.fixture(autouse=True)
@@ -71,13 +74,20 @@ def test_the_panel_starts_an_adaptive_run_and_shows_its_prediction_and_remaining
             _answer(browser, "Operator confirmation")  # spheres mounted
             _answer(browser, "Operator confirmation")  # area clear
 
+            seen: list[dict[str, str]] = [{}]
+
             def live() -> dict[str, str] | None:  # a decision with a prediction, before the stop
                 shown = {key: text(browser, key) for key in ("adaptive-rows", "adaptive-prediction",
-                                                               "adaptive-remaining", "remaining", "current-pose")}
+                                                               "adaptive-remaining", "remaining", "current-pose",
+                                                               "adaptive-stop")}
+                seen[0] = shown
                 return shown if "confidence" in shown["adaptive-prediction"] and "more measure rows" in shown[
                     "adaptive-remaining"] else None
 
-            during = wait_for(live, 120, "a live prediction with its remaining time", poll_s=0.05)
+            try:
+                during = wait_for(live, FIRST_PREDICTION_S, "a live prediction with its remaining time", poll_s=0.05)
+            except AssertionError as err:
+                raise AssertionError(f"{err}; the page showed last: {seen[0]}") from None
             stopped = wait_for(lambda: text(browser, "adaptive-stop"), 120, "the adaptive plan's stop")
             rows = len(browser.find_elements("css selector", "#plan-table tr[data-key^='measure']"))
             points = len(browser.find_elements("css selector", "#adaptive-plot circle.pt-adaptive"))
