@@ -72,6 +72,11 @@ def _ref(value: str) -> str:
     return value
 
 
+def _none_word(value: object) -> object:
+    """TOML has no null: ``"none"`` says the device lacks a bit or a command whose default is CiA 402's."""
+    return None if isinstance(value, str) and value.strip().lower() == "none" else value
+
+
 class ObjectsTable(_Strict):
     """A group of objects written as a table (see the module docstring); exactly one of its forms."""
 
@@ -134,9 +139,11 @@ class DeviceControl(_Strict):
     switch_on: int = 0x0007
     enable_operation: int = 0x000F
     disable_voltage: int = 0x0000
-    quick_stop: int = 0x0002
+    quick_stop: int | None = Field(default=0x0002, ge=0, le=0xFFFF, description="quick stop (e-stop); "
+                                   '"none": no stop over the bus, only the hardware e-stop')
     fault_reset: int = 0x0080
-    halt_bit: int | None = Field(default=8, ge=0, le=15, description="controlword bit that halts a move (stop)")
+    halt_bit: int | None = Field(default=8, ge=0, le=15, description="controlword bit that halts a move (stop); "
+                                 '"none": a move runs to its end')
     power_states: bool = Field(default=True, description="false: the device has no CiA 402 power state machine; it "
                                "follows setpoints whenever its statusword does not code `fault`, and is at rest (takes "
                                "parameters) when target_reached_bit is set; enable and disable write nothing")
@@ -150,12 +157,17 @@ class DeviceControl(_Strict):
     mode_object: str = "0x6060"
     mode_display: str = "0x6061"
     target_reached_bit: int = Field(default=10, ge=0, le=15)
-    limit_bit: int | None = Field(default=11, ge=0, le=15, description="internal limit active")
+    limit_bit: int | None = Field(default=11, ge=0, le=15, description='internal limit active; "none": not shown')
 
     @field_validator("controlword", "statusword", "mode_object", "mode_display")
     @classmethod
     def _refs(cls, v: str) -> str:
         return _ref(v)
+
+    @field_validator("quick_stop", "halt_bit", "limit_bit", mode="before")
+    @classmethod
+    def _absent(cls, v: object) -> object:
+        return _none_word(v)
 
     @model_validator(mode="after")
     def _all_states(self) -> DeviceControl:

@@ -4,8 +4,8 @@ by SDO through the station's mapping, the heartbeat as the link's liveness, emer
 Enable walks the CiA 402 state machine (CiA 402-2 §8.4: shutdown, switch on, enable operation, each acknowledged by
 the statusword within ``ack_timeout_s``) on every device-control node (a device without one, ``power_states = false``,
 is enabled by the run alone: it follows setpoints whenever it is not in fault); disable is "shutdown", stop raises
-the halt bit, estop sends "quick stop" to every node even when the link looks lost, fault reset the 0 -> 1 edge of
-bit 7.
+the halt bit, estop sends "quick stop" to every node even when the link looks lost (a device with no halt or no
+quick stop, mapped ``"none"``, is refused with words and nothing written), fault reset the 0 -> 1 edge of bit 7.
 ``move_legs`` checks the leg limits before anything is sent, refuses while a node's heartbeat is missing, writes the
 six setpoints once (never again blind: a lost answer is a CommandTimeout), applies them (the mapping's apply object,
 or the profile-position handshake) and waits, bounded, until every node reports target reached with the actual
@@ -24,6 +24,7 @@ import structlog
 from drivers.controller.base import (
     CommandRefused,
     CommandTimeout,
+    ControllerError,
     ControllerFault,
     ControllerInterface,
     ControllerLost,
@@ -236,8 +237,8 @@ class CanopenController(ControllerInterface):
         """Halt where the legs are (controlword halt bit), staying enabled."""
         self._refuse_unless(set(MOTION_STATES), "STOP")
         if self.control.halt_bit is None:
-            raise CommandRefused("the mapping names no halt bit: use disable", RefusalReason.UNKNOWN_COMMAND, None,
-                                 "driver")
+            raise CommandRefused('the device has no halt over the bus (device_control.halt_bit = "none"): a move in '
+                                 "progress runs to its end", RefusalReason.UNKNOWN_COMMAND, None, "driver")
         self._control(self.control.enable_operation | 1 << self.control.halt_bit)
         self._halted = True
 
@@ -253,6 +254,9 @@ class CanopenController(ControllerInterface):
     def estop(self) -> None:
         """Quick stop to every node, sent whatever the state or the link; waits (bounded) until none is enabled."""
         log.warning("canopen_estop_requested")
+        if self.control.quick_stop is None:
+            raise CommandRefused('the device has no quick stop over the bus (device_control.quick_stop = "none"): stop '
+                                 "it with the machine's hardware e-stop", RefusalReason.UNKNOWN_COMMAND, None, "driver")
         failures = []
         for n, slot in self.map.controlword.items():
             try:
@@ -348,13 +352,26 @@ class CanopenController(ControllerInterface):
             if time.monotonic() > deadline:
                 break
             time.sleep(POLL_S)
+        halted = "no halt: the device has none"
         try:
             self.stop()
+            halted = "halt sent"
         except Exception as err:
             log.warning("stop_after_timeout_failed", error=str(err))
         legs = legs_not_following(before, lowest, highest, target)
         stuck = f": {not_following_text(legs, lengths, target, self.robot.leg_limits)}" if legs else ""
-        raise MotionTimeout(f"legs not in position within {timeout_s} s; halt sent{stuck}")
+        raise MotionTimeout(f"legs not in position within {timeout_s} s{self._limits_text()}; {halted}{stuck}")
+
+    def _limits_text(self) -> str:
+        """Where the mapping has a limit bit: the nodes that show their internal limit active (else nothing)."""
+        bit = self.control.limit_bit
+        if bit is None:
+            return ""
+        try:
+            active = [n for n, word in self._words().items() if word >> bit & 1]
+        except ControllerError:  # the reason the move failed may also keep this read from answering
+            return ""
+        return f" (internal limit active on node {', '.join(map(str, active))})" if active else ""
 
     def close(self) -> None:
         self.link.close()

@@ -22,17 +22,21 @@ import shutil
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import ExitStack
 from pathlib import Path
 
+import can
 import canopen
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from drivers.controller.base import CommandRefused
 from hilcal.robot import Robot, load_robot
 from procedures.cli.app import app
 from procedures.cli.sim_station import SIM_TIMING
 from procedures.plan import make_plan, save_plan
+from procedures.station import load_station, open_controller
 from sim_devices.rig.rig import SimulatedRig
 from sim_devices.sim_config import SimConfig
 from sim_devices.simulator import published_alignment
@@ -227,3 +231,35 @@ def test_the_cmm_session_is_clean_by_the_servers_own_reading_of_the_standard(bli
     assert sent[0].startswith("StartSession()") and sent[-1].startswith("EndSession()")
     assert any("Tool.AvrRadius()" in line for line in sent)
     assert sum(line.startswith("PtMeas(") for line in sent) > 100
+
+
+def test_a_device_without_halt_or_quick_stop_is_told_so_and_nothing_is_written(tmp_path: Path, device) -> None:
+    """The HX-6 has neither a halt nor a quick stop over the bus (its manual, §3.3 and §5.1): mapped "none", stop and
+    e-stop are refused in words and no SDO download reaches the device, while moves still work. An observer on the
+    bus (python-can, not hilcal) counts the SDO requests to node 5 that write (client command specifier 1)."""
+    _, channel = device
+    station = load_station(_station(tmp_path, channel, cmm=""), partial=True)
+    robot = load_robot(tmp_path / "zentrix_robot.toml")
+    writes: list[bytes] = []
+    observer = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    notifier = can.Notifier(observer, [lambda m: writes.append(bytes(m.data))
+                                       if m.arbitration_id == 0x600 + NODE_ID and m.data[0] >> 5 == 1 else None])
+    try:
+        with ExitStack() as stack:
+            controller, _ = open_controller(station, robot, stack, check=True)
+            controller.enable()
+            start = controller.feedback().lengths_mm
+            reached = controller.move_legs(start + 0.5, timeout_s=5.0)
+            assert np.allclose(reached, start + 0.5, atol=1e-3)
+            time.sleep(0.2)
+            moved = len(writes)
+            assert moved >= 6, "the move wrote its six setpoints"
+            with pytest.raises(CommandRefused, match=r"no halt over the bus .*runs to its end"):
+                controller.stop()
+            with pytest.raises(CommandRefused, match=r"no quick stop over the bus .*hardware e-stop"):
+                controller.estop()
+            time.sleep(0.2)
+            assert len(writes) == moved, [w.hex() for w in writes[moved:]]
+    finally:
+        notifier.stop()
+        observer.shutdown()

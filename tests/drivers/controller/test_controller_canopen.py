@@ -215,3 +215,23 @@ def test_a_statusword_coding_names_cia_402s_states_or_says_there_are_none(tmp_pa
     path.write_text(text.replace("{}", "power_states = false\ntarget_reached_bit = 1\nstates = { fault = [4, 4] }"))
     control = load_station(path).controller.device_control
     assert [drive_state(word, control) for word in (0b010, 0b001, 0b110)] == ["at_rest", "moving", "fault"]
+
+
+def test_a_bit_or_command_the_device_lacks_is_written_none(tmp_path: Path) -> None:
+    """TOML has no null: `"none"` (any case) says the device has no halt bit, quick stop or limit bit; another word or
+    a bit beyond 15 is refused, naming the key."""
+    (tmp_path / "acme_lx200.eds").write_text(Path(STATION.with_name("acme_lx200.eds")).read_text())
+    text = STATION.read_text().replace("[controller.emcy_codes]", "[controller.device_control]\n{}\n"
+                                       "[controller.emcy_codes]")
+    path = tmp_path / "station.toml"
+    path.write_text(text.replace("{}", 'halt_bit = "none"\nquick_stop = "None"\nlimit_bit = "none"'))
+    control = load_station(path).controller.device_control
+    assert (control.halt_bit, control.quick_stop, control.limit_bit) == (None, None, None)
+    path.write_text(text.replace("{}", ""))
+    control = load_station(path).controller.device_control
+    assert (control.halt_bit, control.quick_stop, control.limit_bit) == (8, 0x0002, 11)
+    for section, key in (('halt_bit = "off"', "halt_bit"), ("limit_bit = 16", "limit_bit"),
+                         ('quick_stop = ""', "quick_stop")):
+        path.write_text(text.replace("{}", section))
+        with pytest.raises(StationConfigError, match=key):
+            load_station(path)
