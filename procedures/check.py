@@ -143,6 +143,15 @@ def check_tracker(station: Any, robot: Robot) -> DeviceCheck:
     return check
 
 
+def _canopen_stops(control: Any) -> dict[str, str]:
+    """How hilcal can stop the device over the bus, in words: a mapping without a halt or a quick stop is said before
+    a run, not found when the operator pauses."""
+    return {"stop": "none: a move in progress runs to its end" if control.halt_bit is None
+            else f"halt, controlword bit {control.halt_bit}",
+            "estop": "none over the bus: the machine's hardware e-stop only" if control.quick_stop is None
+            else f"quick stop, controlword {control.quick_stop:04X}h"}
+
+
 def check_controller(station: Any, robot: Robot) -> DeviceCheck:
     """Connect the controller: its heartbeat and state, and the parameter interface's identity, state, geometry and
     checksum (nothing written)."""
@@ -151,6 +160,8 @@ def check_controller(station: Any, robot: Robot) -> DeviceCheck:
     bus = station.can.bus_config()
     check = DeviceCheck("controller", f"CAN {bus.get('interface')} {bus.get('channel')}")
     check.details.update(protocol=station.controller.kind, can=f"{bus.get('interface')} {bus.get('channel')}")
+    if station.controller.kind == "canopen":
+        check.details["stops"] = _canopen_stops(station.controller.mapping().device_control)
     with ExitStack() as stack:
         try:
             controller, params = open_controller(station, robot, stack, check=False, writes=False)

@@ -93,6 +93,9 @@ def _print_device(d: dict) -> None:
 def _print_controller(d: dict) -> None:
     if d.get("state"):
         out.print(f"  state: {d['state']}; leg lengths {', '.join(f'{v:.3f}' for v in d.get('lengths_mm', []))} mm")
+    stops = d.get("stops")
+    if stops:
+        out.print(f"  stop: {stops['stop']}; e-stop: {stops['estop']}")
     params = d.get("parameters") or {}
     if params.get("state"):
         out.print(f"  parameter interface {params.get('endpoint')}: {params['state']}")

@@ -91,6 +91,9 @@ def test_acme_is_checked_by_its_station_file_alone(tmp_path: Path) -> None:
         assert parameters["geometry"]["l0_mm"] == [v / 1000 for v in peer.zero_um]
         assert parameters["checksum"] is not None and parameters["checksum"] == parameters["checksum_expected"]
         assert peer.kept_um == peer.zero_um and controller["problems"] == []
+        text = runner.invoke(app, ["check", "--station", str(tmp_path / "station.toml")])
+        assert text.exit_code == 0, text.output
+        assert "stop: halt, controlword bit 8; e-stop: quick stop, controlword 0002h" in text.output
     finally:
         peer.close()
 

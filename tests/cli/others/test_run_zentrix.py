@@ -117,6 +117,8 @@ def test_the_device_is_checked_by_the_station_file_alone(tmp_path: Path, device)
     assert _heartbeat_ms(channel) == before
     (controller,) = json.loads(result.stdout)["devices"]
     assert controller["ok"] and controller["problems"] == []
+    assert controller["stops"] == {"stop": "none: a move in progress runs to its end",
+                                   "estop": "none over the bus: the machine's hardware e-stop only"}
     assert controller["identity"]["vendor_id"] == 0x5A454E58 and controller["identity"]["node_id"] == NODE_ID
     geometry = controller["parameters"]["geometry"]
     factory = _factory_geometry()
