@@ -352,12 +352,15 @@ class CanopenController(ControllerInterface):
             if time.monotonic() > deadline:
                 break
             time.sleep(POLL_S)
-        halted = "no halt: the device has none"
-        try:
-            self.stop()
-            halted = "halt sent"
-        except Exception as err:
-            log.warning("stop_after_timeout_failed", error=str(err))
+        if self.control.halt_bit is None:
+            halted = "no halt sent: the device has none"
+        else:
+            try:
+                self.stop()
+                halted = "halt sent"
+            except Exception as err:
+                log.warning("stop_after_timeout_failed", error=str(err))
+                halted = f"the halt failed: {err}"
         legs = legs_not_following(before, lowest, highest, target)
         stuck = f": {not_following_text(legs, lengths, target, self.robot.leg_limits)}" if legs else ""
         raise MotionTimeout(f"legs not in position within {timeout_s} s{self._limits_text()}; {halted}{stuck}")
