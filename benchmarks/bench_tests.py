@@ -9,7 +9,10 @@ Run ``python benchmarks/bench_tests.py`` (uncommitted changes are not measured: 
 only pytest, as `make test` does, in this checkout. ``--by-process`` adds where the CPU time goes: every Python
 process the suite starts logs its own CPU seconds at exit (a ``sitecustomize`` on PYTHONPATH), summed by kind (the
 pytest workers with the tests they run in-process, `hilcal run`, the simulator, the PDF renderer, other commands);
-processes killed by a signal (the resume tests' SIGKILL) and non-Python ones (Chromium, PostgreSQL) are not in it.
+processes killed by a signal (the resume tests' SIGKILL) and non-Python ones (Chromium, PostgreSQL) are not in it, so
+it also states the whole machine's busy CPU seconds over the same time (/proc/stat), and where the logged seconds go by
+test file: each test's own CPU time in its worker (a pytest plugin on PYTEST_PLUGINS) plus the processes started while
+it ran (PYTEST_CURRENT_TEST, which they inherit).
 Targets: `make test` <= 5 min on 2 cores (issue 22), and pytest's own wall <= 190 s here (issue 29: 5 min on a
 machine 1.6x slower, with margin).
 """
@@ -38,12 +41,30 @@ PROCESS_LOG = """import atexit, os, sys
 
 def _log_cpu():
     t = os.times()
+    test = os.environ.get("PYTEST_CURRENT_TEST", "").split("::")[0]
     with open({path!r}, "a") as out:
-        out.write(f"{{t.user + t.system:.3f}}\\t{{' '.join(sys.argv[:2])}}\\n")
+        out.write(f"{{t.user + t.system:.3f}}\\t{{test}}\\t{{' '.join(sys.argv[:2])}}\\n")
 
 
 atexit.register(_log_cpu)
 """
+"""Loaded by every Python process the suite starts (a sitecustomize): its CPU seconds at exit, the test file that
+started it (none for the pytest processes themselves) and what it was."""
+
+TEST_CPU_PLUGIN = """import time
+
+import pytest
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    start = time.process_time()
+    yield
+    with open({path!r}, "a") as out:
+        out.write(f"{{time.process_time() - start:.3f}}\\t{{item.nodeid.split('::')[0]}}\\n")
+"""
+"""A pytest plugin (PYTEST_PLUGINS): each test's CPU seconds in its worker, setup and teardown included."""
+PLUGIN_NAME = "hilcal_bench_test_cpu"
 
 
 def _kind(argv: str) -> str:
@@ -51,6 +72,8 @@ def _kind(argv: str) -> str:
     first, _, second = argv.partition(" ")
     if first == "-c":
         return "pytest workers (the tests run in-process)"
+    if first.endswith(("/pytest", "pytest/__main__.py")):
+        return "pytest's main process (collection, xdist's scheduling)"
     if first.endswith("launcher.py"):
         return "simulator (`python -m sim_devices.launcher`)"
     if first.endswith("pdf.py"):
@@ -60,23 +83,63 @@ def _kind(argv: str) -> str:
     return "other Python processes"
 
 
-def _by_process(log: Path) -> list[str]:
-    """The CPU table of ``--by-process``."""
+def _machine_busy_s() -> float | None:
+    """The whole machine's busy CPU seconds since boot (/proc/stat's user, nice, system, irq and softirq; guest time
+    is inside user already, steal is not this machine's work), None off Linux."""
+    try:
+        user, nice, system, _idle, _iowait, irq, softirq = (
+            int(v) for v in Path("/proc/stat").read_text().splitlines()[0].split()[1:8])
+    except (OSError, ValueError):
+        return None
+    return (user + nice + system + irq + softirq) / os.sysconf("SC_CLK_TCK")
+
+
+def _by_process(log: Path, tests_log: Path, machine_s: float | None) -> list[str]:
+    """The CPU tables of ``--by-process``: by process kind, then by test file."""
     cpu: dict[str, list[float]] = {}
+    files: dict[str, list[float]] = {}  # test file -> [in-process s, processes, their s]
     for line in log.read_text().splitlines():
-        seconds, _, argv = line.partition("\t")
+        seconds, test, argv = line.split("\t", 2)
         cpu.setdefault(_kind(argv), []).append(float(seconds))
+        if test and _kind(argv) != "pytest workers (the tests run in-process)":
+            row = files.setdefault(test, [0.0, 0, 0.0])
+            row[1] += 1
+            row[2] += float(seconds)
+    if tests_log.exists():
+        for line in tests_log.read_text().splitlines():
+            seconds, test = line.split("\t", 1)
+            files.setdefault(test, [0.0, 0, 0.0])[0] += float(seconds)
     total = sum(sum(v) for v in cpu.values())
     rows = sorted(cpu.items(), key=lambda kv: -sum(kv[1]))
-    return ["", f"CPU seconds by process kind (`--by-process`; {total:.0f} s logged):", "",
+    machine = ([f"The whole machine was busy {machine_s:.0f} CPU s over the same command: {machine_s - total:.0f} s "
+                "more than "
+                "logged (Chromium, PostgreSQL, processes killed by a signal, byte-compiling and ruff, the kernel's "
+                "work for them).", ""]
+               if machine_s is not None else [])
+    by_file = sorted(files.items(), key=lambda kv: -(kv[1][0] + kv[1][2]))
+    return ["", f"CPU seconds by process kind (`--by-process`; {total:.0f} s logged):", "", *machine,
             "| process | processes | CPU s | share | CPU s each |", "|---|---:|---:|---:|---:|",
             *[f"| {kind} | {len(v)} | {sum(v):.0f} | {100 * sum(v) / total:.0f} % | {sum(v) / len(v):.1f} |"
-              for kind, v in rows]]
+              for kind, v in rows],
+            "", "The 25 test files with the most logged CPU seconds (in-process: the tests in their worker; "
+            "started: the Python processes they started, logged at exit):", "",
+            "| test file | in-process CPU s | processes started | their CPU s | total CPU s |",
+            "|---|---:|---:|---:|---:|",
+            *[f"| `{name}` | {inproc:.1f} | {n} | {started:.1f} | {inproc + started:.1f} |"
+              for name, (inproc, n, started) in by_file[:25]]]
+
+
+BUSY: dict[str, float] = {}
+"""The whole machine's busy CPU seconds over the last `_timed` command (key "s"), where /proc/stat is readable."""
 
 
 def _timed(cmd: Sequence[str], cwd: Path, env: dict[str, str]) -> tuple[float, subprocess.CompletedProcess[str]]:
-    t0 = time.perf_counter()
+    t0, busy0 = time.perf_counter(), _machine_busy_s()
     done = subprocess.run(list(cmd), cwd=cwd, env=env, capture_output=True, text=True, check=False)
+    busy1 = _machine_busy_s()
+    BUSY.pop("s", None)
+    if busy0 is not None and busy1 is not None:
+        BUSY["s"] = busy1 - busy0
     return time.perf_counter() - t0, done
 
 
@@ -119,12 +182,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     env = {**os.environ, "CI": "true", "OPENBLAS_NUM_THREADS": "1"}  # as `make test` sets it
     with tempfile.TemporaryDirectory(prefix="hilcal-cpu-") as audit:
-        log = Path(audit) / "processes.tsv"
+        log, tests_log = Path(audit) / "processes.tsv", Path(audit) / "tests.tsv"
         if args.by_process:
             (Path(audit) / "sitecustomize.py").write_text(PROCESS_LOG.format(path=str(log)))
+            (Path(audit) / f"{PLUGIN_NAME}.py").write_text(TEST_CPU_PLUGIN.format(path=str(tests_log)))
             env["PYTHONPATH"] = os.pathsep.join(filter(None, [audit, env.get("PYTHONPATH")]))
+            env["PYTEST_PLUGINS"] = ",".join(filter(None, [env.get("PYTEST_PLUGINS"), PLUGIN_NAME]))
         lines, output, code, _ = (_here if args.here else _fresh_clone)(env)
-        by_process = _by_process(log) if args.by_process and log.exists() else []
+        machine_s = BUSY.get("s")  # over the last command: `make test` (or pytest with --here)
+        by_process = _by_process(log, tests_log, machine_s) if args.by_process and log.exists() else []
     summary = re.findall(r"(\d+ (?:passed|failed).*?) in ([\d.]+)s", output)
     slowest = list(dict.fromkeys(re.findall(r"^([\d.]+)s (call|setup|teardown)\s+(\S+)$", output,
                                             flags=re.M)))[:20]  # a line pytest prints twice is one test
