@@ -28,6 +28,7 @@ import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 from _docs import write_doc
 
@@ -67,11 +68,14 @@ def pytest_runtest_protocol(item, nextitem):
 PLUGIN_NAME = "hilcal_bench_test_cpu"
 
 
+WORKERS = "pytest workers (the tests run in-process)"
+
+
 def _kind(argv: str) -> str:
     """What a logged process was, from its first two arguments."""
     first, _, second = argv.partition(" ")
     if first == "-c":
-        return "pytest workers (the tests run in-process)"
+        return WORKERS
     if first.endswith(("/pytest", "pytest/__main__.py")):
         return "pytest's main process (collection, xdist's scheduling)"
     if first.endswith("launcher.py"):
@@ -100,8 +104,9 @@ def _by_process(log: Path, tests_log: Path, machine_s: float | None) -> list[str
     files: dict[str, list[float]] = {}  # test file -> [in-process s, processes, their s]
     for line in log.read_text().splitlines():
         seconds, test, argv = line.split("\t", 2)
-        cpu.setdefault(_kind(argv), []).append(float(seconds))
-        if test and _kind(argv) != "pytest workers (the tests run in-process)":
+        kind = _kind(argv)
+        cpu.setdefault(kind, []).append(float(seconds))
+        if test and kind != WORKERS:
             row = files.setdefault(test, [0.0, 0, 0.0])
             row[1] += 1
             row[2] += float(seconds)
@@ -112,9 +117,8 @@ def _by_process(log: Path, tests_log: Path, machine_s: float | None) -> list[str
     total = sum(sum(v) for v in cpu.values())
     rows = sorted(cpu.items(), key=lambda kv: -sum(kv[1]))
     machine = ([f"The whole machine was busy {machine_s:.0f} CPU s over the same command: {machine_s - total:.0f} s "
-                "more than "
-                "logged (Chromium, PostgreSQL, processes killed by a signal, byte-compiling and ruff, the kernel's "
-                "work for them).", ""]
+                "more than logged (Chromium, PostgreSQL, processes killed by a signal, byte-compiling and ruff, the "
+                "kernel's work for them).", ""]
                if machine_s is not None else [])
     by_file = sorted(files.items(), key=lambda kv: -(kv[1][0] + kv[1][2]))
     return ["", f"CPU seconds by process kind (`--by-process`; {total:.0f} s logged):", "", *machine,
@@ -129,49 +133,52 @@ def _by_process(log: Path, tests_log: Path, machine_s: float | None) -> list[str
               for name, (inproc, n, started) in by_file[:25]]]
 
 
-BUSY: dict[str, float] = {}
-"""The whole machine's busy CPU seconds over the last `_timed` command (key "s"), where /proc/stat is readable."""
+class Timed(NamedTuple):
+    """A command's wall seconds, the whole machine's busy CPU seconds meanwhile (None off Linux) and its result."""
+
+    wall_s: float
+    busy_s: float | None
+    done: subprocess.CompletedProcess[str]
 
 
-def _timed(cmd: Sequence[str], cwd: Path, env: dict[str, str]) -> tuple[float, subprocess.CompletedProcess[str]]:
+def _timed(cmd: Sequence[str], cwd: Path, env: dict[str, str]) -> Timed:
     t0, busy0 = time.perf_counter(), _machine_busy_s()
     done = subprocess.run(list(cmd), cwd=cwd, env=env, capture_output=True, text=True, check=False)
     busy1 = _machine_busy_s()
-    BUSY.pop("s", None)
-    if busy0 is not None and busy1 is not None:
-        BUSY["s"] = busy1 - busy0
-    return time.perf_counter() - t0, done
+    busy = busy1 - busy0 if busy0 is not None and busy1 is not None else None
+    return Timed(time.perf_counter() - t0, busy, done)
 
 
-def _fresh_clone(env: dict[str, str]) -> tuple[list[str], str, int, float]:
-    """`make venv` then `make test` in a clone of HEAD: the summary lines, pytest's output, exit code, total s."""
+def _fresh_clone(env: dict[str, str]) -> tuple[list[str], str, int, float | None]:
+    """`make venv` then `make test` in a clone of HEAD: the summary lines, pytest's output, exit code and the
+    machine's busy CPU s over `make test`."""
     with tempfile.TemporaryDirectory(prefix="hilcal-fresh-") as tmp:
         clone = Path(tmp) / "hilcal"
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                               check=True).stdout.strip()
         subprocess.run(["git", "clone", "--quiet", str(ROOT), str(clone)], check=True)
         cold = {**env, "UV_NO_CACHE": "1", "PIP_NO_CACHE_DIR": "1"}
-        venv_s, venv = _timed(["make", "venv"], clone, cold)
+        venv_s, _, venv = _timed(["make", "venv"], clone, cold)
         if venv.returncode != 0:
-            return [f"- `make venv` failed (exit code {venv.returncode})"], venv.stdout + venv.stderr, 1, venv_s
-        test_s, test = _timed(["make", "test"], clone, cold)
+            return [f"- `make venv` failed (exit code {venv.returncode})"], venv.stdout + venv.stderr, 1, None
+        test_s, busy_s, test = _timed(["make", "test"], clone, cold)
         total = venv_s + test_s
         verdict = "met" if total <= TARGET_S and test.returncode == 0 else "**not met**"
         lines = [f"- Fresh clone of {head}, cold package caches: `make test` took {total:.0f} s in all "
                  f"(target <= {TARGET_S:.0f} s: {verdict}).",
                  f"- The venv's installation (`make venv`: uv, every wheel downloaded): {venv_s:.0f} s.",
                  f"- Byte-compiling, ruff and pytest (the rest of `make test`): {test_s:.0f} s."]
-        return lines, test.stdout + test.stderr, test.returncode, total
+        return lines, test.stdout + test.stderr, test.returncode, busy_s
 
 
-def _here(env: dict[str, str]) -> tuple[list[str], str, int, float]:
+def _here(env: dict[str, str]) -> tuple[list[str], str, int, float | None]:
     """pytest as `make test` runs it, in this checkout."""
     workers = str((os.cpu_count() or 1) + 1)
-    wall, done = _timed([sys.executable, "-m", "pytest", "-n", workers, "--dist", "loadfile",
+    wall, busy_s, done = _timed([sys.executable, "-m", "pytest", "-n", workers, "--dist", "loadfile",
                          "--no-loadscope-reorder", "--durations=20"], ROOT, env)
     lines = [f"- This checkout, pytest only ({workers} workers, as `make test`): {wall:.0f} s. A fresh clone adds "
              "the venv's installation."]
-    return lines, done.stdout + done.stderr, done.returncode, wall
+    return lines, done.stdout + done.stderr, done.returncode, busy_s
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -188,8 +195,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             (Path(audit) / f"{PLUGIN_NAME}.py").write_text(TEST_CPU_PLUGIN.format(path=str(tests_log)))
             env["PYTHONPATH"] = os.pathsep.join(filter(None, [audit, env.get("PYTHONPATH")]))
             env["PYTEST_PLUGINS"] = ",".join(filter(None, [env.get("PYTEST_PLUGINS"), PLUGIN_NAME]))
-        lines, output, code, _ = (_here if args.here else _fresh_clone)(env)
-        machine_s = BUSY.get("s")  # over the last command: `make test` (or pytest with --here)
+        lines, output, code, machine_s = (_here if args.here else _fresh_clone)(env)
         by_process = _by_process(log, tests_log, machine_s) if args.by_process and log.exists() else []
     summary = re.findall(r"(\d+ (?:passed|failed).*?) in ([\d.]+)s", output)
     slowest = list(dict.fromkeys(re.findall(r"^([\d.]+)s (call|setup|teardown)\s+(\S+)$", output,
