@@ -16,7 +16,6 @@ from typing import Any, cast
 
 import numpy as np
 import structlog
-from scipy.spatial.transform import Rotation
 
 from hilcal.robot import Robot, load_robot
 from sim_devices.canopen.model import CanopenController
@@ -25,6 +24,7 @@ from sim_devices.cmm.server import CmmServerHandle, start_cmm_server
 from sim_devices.controller.servers import ControllerServers, serve_controller
 from sim_devices.controller.state_machine import SimulatedController
 from sim_devices.rig.rig import SimulatedRig
+from sim_devices.rotation import matrix_from_rotvec, matrix_from_rpy_deg
 from sim_devices.sim_config import SimConfig
 from sim_devices.sim_state import DEFAULT_LOCK_TIMEOUT_S, PersistentController, StateStore, restore_rig
 from sim_devices.tracker.config import Station
@@ -62,7 +62,7 @@ def published_alignment(rig: SimulatedRig, error_mm: float, error_deg: float, se
 
 def published_tracker_alignment(station: Station, error_mm: float, error_deg: float, seed: int) -> np.ndarray:
     """T_tracker<-base (4x4) of the tracker's station (p_base = R p_tracker + t), spoiled like the CMM's."""
-    R = Rotation.from_euler("ZYX", station.as_array()[[5, 4, 3]], degrees=True).as_matrix()
+    R = matrix_from_rpy_deg(station.as_array()[3:])
     T = np.eye(4)
     T[:3, :3] = R.T
     T[:3, 3] = -R.T @ station.as_array()[:3]
@@ -74,7 +74,7 @@ def _spoiled(T: np.ndarray, error_mm: float, error_deg: float, seed: list[int]) 
     rng = np.random.default_rng(seed)
     axis, shift = rng.normal(size=3), rng.normal(size=3)
     spoil = np.eye(4)
-    spoil[:3, :3] = Rotation.from_rotvec(np.radians(error_deg) * axis / np.linalg.norm(axis)).as_matrix()
+    spoil[:3, :3] = matrix_from_rotvec(np.radians(error_deg) * axis / np.linalg.norm(axis))
     spoil[:3, 3] = error_mm * shift / np.linalg.norm(shift)
     return T @ spoil
 

@@ -3,8 +3,8 @@ sessions and transactions (``session``, ``handlers``, ``responses``), machine an
 ``physics``, ``tools``), fault injection (``faults``, ``config``) and the server on a pseudo-terminal or TCP
 (``server``). See docs/cmm_simulator.md.
 
-May import ``hilcal.protocols``, ``hilcal.robot``, ``sim_devices.rig``, ``sim_devices.config_base`` and itself;
-never ``drivers`` or the controller.
+May import ``hilcal.protocols``, ``hilcal.robot``, ``sim_devices.rig``, ``sim_devices.config_base``,
+``sim_devices.rotation`` and itself; never ``drivers`` or the controller.
 """
 
 from sim_devices.cmm.config import CmmServerConfig

@@ -11,10 +11,10 @@ orientation by slerp).
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from hilcal.robot import Robot
 from sim_devices.rig.rig import SimulatedRig
+from sim_devices.rotation import matrix_from_rpy_deg, rotvec_from_matrix, slerp
 
 PENETRATION_TOL_MM = 1e-6
 """A move enters a sphere when the ball's centre comes closer to the sphere's centre than R + r less this (a ball
@@ -47,8 +47,7 @@ class Spheres:
         key = pose.tobytes()
         if self._seen is not None and self._seen[0] == key:
             return self._seen[1].copy(), None
-        rot = Rotation.from_euler("ZYX", pose[[5, 4, 3]], degrees=True)
-        platform = rot.apply(self.robot.platform_spheres) + pose[:3]
+        platform = self.robot.platform_spheres @ matrix_from_rpy_deg(pose[3:]).T + pose[:3]
         previous = self._seen
         self._seen = (key, self.rig.to_cmm(np.vstack([platform, self.robot.base_spheres])), pose)
         way = None if previous is None else self._platform_way(previous[2], pose)
@@ -58,11 +57,11 @@ class Spheres:
         return self.look()[0]
 
     def _platform_way(self, pose0: np.ndarray, pose1: np.ndarray) -> np.ndarray:
-        rots = Rotation.from_euler("ZYX", np.vstack([pose0, pose1])[:, [5, 4, 3]], degrees=True)
-        turn_deg = float(np.degrees((rots[0].inv() * rots[1]).magnitude()))
+        R0, R1 = matrix_from_rpy_deg(pose0[3:]), matrix_from_rpy_deg(pose1[3:])
+        turn_deg = float(np.degrees(np.linalg.norm(rotvec_from_matrix(R0.T @ R1))))
         n = int(min(MAX_WAY_STEPS, max(1, np.ceil(turn_deg / WAY_STEP_DEG))))
         t = np.linspace(0.0, 1.0, n + 1)
-        R = Slerp([0.0, 1.0], rots)(t).as_matrix()
+        R = slerp(R0, R1, t)
         shift = pose0[:3] + t[:, None] * (pose1[:3] - pose0[:3])
         points = np.einsum("nij,kj->nki", R, self.robot.platform_spheres) + shift[:, None, :]
         return self.rig.to_cmm(points.reshape(-1, 3)).reshape(points.shape)

@@ -13,7 +13,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.optimize import brentq
 
 N_LEGS = 6
 MAX_FIXED_POINT_STEPS = 60
@@ -77,6 +76,8 @@ class LegCorrector:
             s = new
             if done:
                 return s
+        from scipy.optimize import brentq  # a rare fallback: scipy stays out of the simulator's start-up
+
         for leg in range(N_LEGS):
             def residual(x: float, leg: int = leg) -> float:
                 trial = s.copy()

@@ -4,9 +4,9 @@ library lists and electric legs (motor encoders with homing, drive compliance), 
 (``config``, ``unlisted_config``, ``unlisted_concealed``, ``electric_config``, with the paper's error tables in
 ``data/``).
 
-May import ``hilcal.robot``, ``hilcal.protocols``, ``hilcal.recording``, ``sim_devices.config_base`` and itself;
-never the controller, the CMM or the composition. A new effect in the rig goes into ``physics`` (or
-``unlisted_physics``) with its switch and parameters in ``config``.
+May import ``hilcal.robot``, ``hilcal.protocols``, ``hilcal.recording``, ``sim_devices.config_base``,
+``sim_devices.rotation`` and itself; never the controller, the CMM or the composition. A new effect in the rig goes
+into ``physics`` (or ``unlisted_physics``) with its switch and parameters in ``config``.
 """
 
 from sim_devices.rig.config import EffectsConfig, GeometryErrors, RigConfig, load_errors, random_errors

@@ -14,7 +14,6 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
-from scipy.spatial.transform import Rotation
 
 from hilcal.robot import Robot, default_robot
 from sim_devices.config_base import Effect as _Effect
@@ -34,6 +33,7 @@ from sim_devices.rig.unlisted_config import (
     TransducerBowConfig,
     ZeroShiftConfig,
 )
+from sim_devices.rotation import matrix_from_rpy_deg
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
@@ -342,7 +342,7 @@ class RigConfig(_Strict):
 def _home_leg_directions(robot: Robot) -> np.ndarray:
     """(6, 3) unit leg vectors at the home pose with the nominal geometry."""
     home = robot.home
-    R = Rotation.from_euler("ZYX", home[[5, 4, 3]], degrees=True).as_matrix()
+    R = matrix_from_rpy_deg(home[3:])
     legs = robot.a @ R.T + home[:3] - robot.b
     return legs / np.linalg.norm(legs, axis=1, keepdims=True)
 

@@ -1,8 +1,8 @@
 """Truth physics of the simulated rig: an uncalibrated controller driving a robot with geometric errors.
 
 Deliberately independent of the calibration code (only the declarative robot loader is shared): the
-kinematics here use scipy rotations and a least-squares forward solver over a rotation vector, so a
-simulation cannot agree with the fitting code merely because both share a formulation.
+kinematics here use their own rotation helpers (sim_devices.rotation) and a Newton forward solver over a rotation
+vector, so a simulation cannot agree with the fitting code merely because both share a formulation.
 
 Truth model, per leg i: true platform joint a_i + da_i, true base joint b_i + db_i, and true joint-centre distance =
 reported length + dl0_i + the corrections of the enabled non-geometric effects (sim_devices.rig.physics), which may
@@ -16,13 +16,12 @@ clock that drives a drifting temperature, read by a noisy temperature sensor.
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from hilcal.robot import Robot
 from sim_devices.rig import electric_physics, physics, table_physics, unlisted_physics
 from sim_devices.rig.config import EffectsConfig, RigConfig
 from sim_devices.rig.unlisted_config import TIME_DEPENDENT_EFFECTS
+from sim_devices.rotation import matrix_from_rotvec, matrix_from_rpy_deg, orthonormalized, rpy_deg_from_matrix
 
 FK_TOLERANCE_MM = 1e-9
 NEWTON_TOLERANCE_MM = 1e-11
@@ -32,15 +31,14 @@ POSE_CONVERGENCE_MM = 1e-9
 MAX_EFFECT_ITERATIONS = 50
 
 
-def _rotation_from_pose(pose: np.ndarray) -> Rotation:
-    """Rotation of pose(s) [..., x, y, z, roll, pitch, yaw] (deg); R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    return Rotation.from_euler("ZYX", np.asarray(pose)[..., [5, 4, 3]], degrees=True)
+def _rotation_from_pose(pose: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] of pose(s) [..., x, y, z, roll, pitch, yaw deg]; R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    return matrix_from_rpy_deg(np.asarray(pose)[..., 3:])
 
 
-def _pose_from_rotation(rot: Rotation, t_mm: np.ndarray) -> np.ndarray:
-    """[x, y, z mm, roll, pitch, yaw deg] from a rotation and a translation (intrinsic ZYX: yaw first)."""
-    ypr = rot.as_euler("ZYX", degrees=True)
-    return np.concatenate([np.asarray(t_mm, dtype=float), ypr[..., ::-1]], axis=-1)
+def _pose_from_rotation(R: np.ndarray, t_mm: np.ndarray) -> np.ndarray:
+    """[x, y, z mm, roll, pitch, yaw deg] from a rotation matrix and a translation (intrinsic ZYX: yaw first)."""
+    return np.concatenate([np.asarray(t_mm, dtype=float), rpy_deg_from_matrix(R)], axis=-1)
 
 
 class SimulatedRig:
@@ -70,7 +68,7 @@ class SimulatedRig:
         self._session_start_s = 0.0
         self._session = 0
         self._stroke_range_mm = (robot.leg_limits[0] - robot.l0, robot.leg_limits[1] - robot.l0)
-        home_legs = physics.platform_joints_mm(self._last_rotation.as_matrix(), self._last_translation, self.a_true)
+        home_legs = physics.platform_joints_mm(self._last_rotation, self._last_translation, self.a_true)
         home_legs = home_legs - self.b_true
         self._first_axes = unlisted_physics.hooke_first_axes(
             home_legs / np.linalg.norm(home_legs, axis=1, keepdims=True),
@@ -85,7 +83,7 @@ class SimulatedRig:
         p = np.asarray(pose, dtype=float)
         if p.shape[-1] != 6 or p.ndim > 2:
             raise ValueError(f"pose must have shape (6,) or (N, 6), got {p.shape}")
-        R = _rotation_from_pose(p).as_matrix()
+        R = _rotation_from_pose(p)
         joints = np.einsum("...jk,ik->...ij", R, self.robot.a) + p[..., None, :3]
         lengths = np.linalg.norm(joints - self.robot.b, axis=-1)
         return self._quantize(lengths)
@@ -180,28 +178,31 @@ class SimulatedRig:
     def _solve_fk(
         self,
         reported_mm: np.ndarray,
-        start_rotation: Rotation,
+        start_rotation: np.ndarray,
         start_t_mm: np.ndarray,
         corrections_mm: np.ndarray | None = None,
-    ) -> tuple[Rotation, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray]:
         """FK of the true geometry: Newton steps with the exact Jacobian from the start pose (quadratic, a few
-        steps from a warm start); Levenberg-Marquardt from the same start where Newton does not converge."""
+        steps from a warm start); Levenberg-Marquardt from the same start where Newton does not converge. The rotation
+        is re-orthonormalized, so rounding does not pile up over the warm starts."""
         target = self.true_lengths(reported_mm)
         if corrections_mm is not None:
             target = target + corrections_mm
-        solved = _newton_fk(self.a_true, self.b_true, target, start_rotation.as_matrix(), start_t_mm)
-        if solved is not None:
-            return Rotation.from_matrix(solved[0]), solved[1]
-        return self._solve_fk_lm(target, start_rotation, start_t_mm, reported_mm)
+        solved = _newton_fk(self.a_true, self.b_true, target, start_rotation, start_t_mm)
+        if solved is None:
+            solved = self._solve_fk_lm(target, start_rotation, start_t_mm, reported_mm)
+        return orthonormalized(solved[0]), solved[1]
 
     def _solve_fk_lm(
-        self, target: np.ndarray, start_rotation: Rotation, start_t_mm: np.ndarray, reported_mm: np.ndarray
-    ) -> tuple[Rotation, np.ndarray]:
+        self, target: np.ndarray, start_rotation: np.ndarray, start_t_mm: np.ndarray, reported_mm: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """FK by Levenberg-Marquardt; unknowns: rotation vector relative to start_rotation (rad), t (mm)."""
+        from scipy.optimize import least_squares  # a rare fallback: scipy stays out of the simulator's start-up
+
         a, b = self.a_true, self.b_true
 
         def residual(x: np.ndarray) -> np.ndarray:
-            R = (Rotation.from_rotvec(x[:3]) * start_rotation).as_matrix()
+            R = matrix_from_rotvec(x[:3]) @ start_rotation
             return np.linalg.norm(a @ R.T + x[3:] - b, axis=1) - target
 
         x0 = np.concatenate([np.zeros(3), start_t_mm])
@@ -221,16 +222,15 @@ class SimulatedRig:
                 f"forward kinematics did not converge (worst leg residual {worst:.3g} mm) for reported "
                 f"lengths {reported_mm.tolist()} mm; the pose may be near a singularity or unreachable"
             )
-        return Rotation.from_rotvec(sol.x[:3]) * start_rotation, sol.x[3:].copy()
+        return matrix_from_rotvec(sol.x[:3]) @ start_rotation, sol.x[3:].copy()
 
     def _corrections_at(
-        self, reported_mm: np.ndarray, rotation: Rotation, t_mm: np.ndarray, history: tuple[np.ndarray, np.ndarray]
+        self, reported_mm: np.ndarray, R: np.ndarray, t_mm: np.ndarray, history: tuple[np.ndarray, np.ndarray]
     ) -> dict[str, np.ndarray]:
-        """Δl (mm) of each enabled effect with the platform at (rotation, t_mm), at the rig's current time.
+        """Δl (mm) of each enabled effect with the platform at (rotation matrix R, t_mm), at the rig's current time.
 
         history = (direction, last move size) of each leg.
         """
-        R = rotation.as_matrix()
         joints = physics.platform_joints_mm(R, t_mm, self.a_true)
         forces = physics.axial_leg_forces_kn(
             R, t_mm, self.a_true, self.b_true, self.robot.moving_mass_kg, self.robot.com, self.robot.gravity_mps2
@@ -281,10 +281,10 @@ class SimulatedRig:
     def _solve_pose(
         self,
         reported_mm: np.ndarray,
-        start_rotation: Rotation,
+        start_rotation: np.ndarray,
         start_t_mm: np.ndarray,
         history: tuple[np.ndarray, np.ndarray],
-    ) -> tuple[Rotation, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray]:
         """True pose with every enabled effect: fixed-point iteration of FK on the corrected lengths.
 
         The corrections depend on the pose (leg loads, leg lengths), so FK is repeated with the corrections
@@ -297,8 +297,8 @@ class SimulatedRig:
         for _ in range(MAX_EFFECT_ITERATIONS):
             corrections = self._corrections_at(reported_mm, rotation, t, history)
             new_rotation, new_t = self._solve_fk(reported_mm, rotation, t, np.sum(list(corrections.values()), axis=0))
-            moved = physics.platform_joints_mm(new_rotation.as_matrix(), new_t, self.a_true) - (
-                physics.platform_joints_mm(rotation.as_matrix(), t, self.a_true)
+            moved = physics.platform_joints_mm(new_rotation, new_t, self.a_true) - (
+                physics.platform_joints_mm(rotation, t, self.a_true)
             )
             rotation, t = new_rotation, new_t
             if float(np.max(np.linalg.norm(moved, axis=1))) < POSE_CONVERGENCE_MM:
@@ -346,7 +346,7 @@ class SimulatedRig:
         """(6,) axial leg compressions (kN) holding the moving mass at the true pose."""
         pose = self.true_pose()
         return physics.axial_leg_forces_kn(
-            _rotation_from_pose(pose).as_matrix(),
+            _rotation_from_pose(pose),
             pose[:3],
             self.a_true,
             self.b_true,
@@ -366,12 +366,12 @@ class SimulatedRig:
 
     def to_cmm(self, points_base_mm: np.ndarray) -> np.ndarray:
         """Express base-frame points (..., 3) in the CMM frame (noise-free)."""
-        return self._cmm_rotation.inv().apply(np.asarray(points_base_mm) - self._cmm_translation)
+        return (np.asarray(points_base_mm) - self._cmm_translation) @ self._cmm_rotation
 
     def measure_spheres(self) -> tuple[np.ndarray, np.ndarray]:
         """Noisy sphere centres in the CMM frame: (platform (M, 3), base (K, 3)), mm."""
         pose = self.true_pose()
-        platform_base = _rotation_from_pose(pose).apply(self.robot.platform_spheres) + pose[:3]
+        platform_base = self.robot.platform_spheres @ _rotation_from_pose(pose).T + pose[:3]
         sigma = self.config.cmm_noise_mm
         platform = self.to_cmm(platform_base)
         base = self.to_cmm(self.robot.base_spheres)
@@ -402,15 +402,6 @@ def _clock_moves_pose(effects: EffectsConfig, active: list[str] | tuple[str, ...
     return bool(timed) or clocked_tables
 
 
-def _rotation_step(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector w (rad), by Rodrigues' formula."""
-    angle = float(np.linalg.norm(w))
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if angle < 1e-12:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(angle) / angle * K + (1.0 - np.cos(angle)) / angle**2 * (K @ K)
-
-
 def _newton_fk(
     a: np.ndarray, b: np.ndarray, target_mm: np.ndarray, R: np.ndarray, t_mm: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -433,6 +424,6 @@ def _newton_fk(
             return None
         if not np.all(np.isfinite(step)) or float(np.linalg.norm(step[:3])) > 0.5:
             return None
-        R = _rotation_step(step[:3]) @ R
+        R = matrix_from_rotvec(step[:3]) @ R
         t = t + step[3:]
     return None

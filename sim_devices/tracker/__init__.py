@@ -2,7 +2,8 @@
 with its own physics (``physics``: a distance meter and two encoders, refraction, MPE-shaped noise, line of sight),
 its settings (``config``), fault injection (``faults``) and where its reflectors are (``targets``).
 
-May import ``hilcal.protocols``, ``hilcal.robot``, ``sim_devices.config_base`` and itself; never ``drivers``.
+May import ``hilcal.protocols``, ``hilcal.robot``, ``sim_devices.config_base``, ``sim_devices.rotation`` and itself;
+never ``drivers``.
 """
 
 from sim_devices.tracker.config import Station, TrackerServerConfig

@@ -36,9 +36,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from hilcal.protocols.emscon import AngleUnit, LengthUnit, PressureUnit, TemperatureUnit
+from sim_devices.rotation import matrix_from_rotvec, matrix_from_rpy_deg, rpy_deg_from_matrix
 
 MM_PER_LENGTH_UNIT = {
     LengthUnit.Meter: 1000.0,
@@ -80,14 +80,13 @@ def from_celsius(value_c: float, unit: int) -> float:
 def station_transform(station_pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(R, t) of a station [x, y, z mm, roll, pitch, yaw deg]: p_base = R p_tracker + t."""
     p = np.asarray(station_pose, dtype=float)
-    R = Rotation.from_euler("ZYX", [p[5], p[4], p[3]], degrees=True).as_matrix()
+    R = matrix_from_rpy_deg(p[3:])
     return R, p[:3].copy()
 
 
 def station_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """[x, y, z mm, roll, pitch, yaw deg] of a station (R, t), the inverse of ``station_transform``."""
-    yaw, pitch, roll = Rotation.from_matrix(R).as_euler("ZYX", degrees=True)
-    return np.array([*np.asarray(t, dtype=float), roll, pitch, yaw])
+    return np.concatenate([np.asarray(t, dtype=float), rpy_deg_from_matrix(R)])
 
 
 def moved_station(R: np.ndarray, t: np.ndarray, move_mm: float, move_deg: float, rng: np.random.Generator
@@ -95,7 +94,7 @@ def moved_station(R: np.ndarray, t: np.ndarray, move_mm: float, move_deg: float,
     """The station (R, t) set up again near its place: its origin shifted by ``move_mm`` along a random direction and
     its frame turned by ``move_deg`` about a random axis through its origin (both drawn from ``rng``, base frame)."""
     direction, axis = rng.normal(size=3), rng.normal(size=3)
-    turn = Rotation.from_rotvec(np.radians(move_deg) * axis / np.linalg.norm(axis)).as_matrix()
+    turn = matrix_from_rotvec(np.radians(move_deg) * axis / np.linalg.norm(axis))
     return turn @ R, np.asarray(t, dtype=float) + move_mm * direction / np.linalg.norm(direction)
 
 

@@ -11,9 +11,9 @@ from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from hilcal.robot import Robot
+from sim_devices.rotation import matrix_from_rpy_deg
 
 
 class PoseSource(Protocol):
@@ -45,7 +45,7 @@ def layout_reflectors(platform_mm: np.ndarray, base_mm: np.ndarray, rig: PoseSou
 
     def centres() -> np.ndarray:
         pose = rig.true_pose()
-        moved = Rotation.from_euler("ZYX", pose[[5, 4, 3]], degrees=True).apply(platform) + pose[:3]
+        moved = platform @ matrix_from_rpy_deg(pose[3:]).T + pose[:3]
         return np.vstack([moved, base])
 
     return centres

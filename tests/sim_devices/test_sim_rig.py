@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from hilcal.robot import default_robot, rotation_matrix
 from sim_devices.rig.config import (
@@ -19,7 +18,8 @@ from sim_devices.rig.config import (
     load_errors,
     random_errors,
 )
-from sim_devices.rig.rig import SimulatedRig
+from sim_devices.rig.rig import SimulatedRig, _pose_from_rotation, _rotation_from_pose
+from sim_devices.rotation import matrix_from_rpy_deg, rpy_deg_from_matrix
 
 ROBOT = default_robot()
 
@@ -53,20 +53,17 @@ def random_poses(n: int, seed: int) -> np.ndarray:
 
 
 def ik_lengths(pose: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """|R a_i + t - b_i| with hilcal.robot's rotation_matrix (not the rig's scipy rotations)."""
+    """|R a_i + t - b_i| with hilcal.robot's rotation_matrix (not the rig's own rotations)."""
     R = rotation_matrix(np.radians(pose[3:]))
     return np.linalg.norm(a @ R.T + pose[:3] - b, axis=1)
 
 
-def test_scipy_euler_convention_matches_robot_rotation_matrix() -> None:
+def test_rig_euler_convention_matches_robot_rotation_matrix() -> None:
     rng = np.random.default_rng(3)
     for rpy_deg in rng.uniform([-80, -80, -179], [80, 80, 179], (50, 3)):
         ours = rotation_matrix(np.radians(rpy_deg))
-        scipy_rot = Rotation.from_euler("ZYX", rpy_deg[::-1], degrees=True)
-        np.testing.assert_allclose(scipy_rot.as_matrix(), ours, atol=1e-14)
-        np.testing.assert_allclose(
-            Rotation.from_matrix(ours).as_euler("ZYX", degrees=True)[::-1], rpy_deg, atol=1e-9
-        )
+        np.testing.assert_allclose(matrix_from_rpy_deg(rpy_deg), ours, atol=1e-14)
+        np.testing.assert_allclose(rpy_deg_from_matrix(ours), rpy_deg, atol=1e-9)
 
 
 def test_controller_ik_uses_nominal_geometry_and_quantizes() -> None:
@@ -249,3 +246,14 @@ def test_seeded_reproducibility() -> None:
     np.testing.assert_array_equal(runs[0], runs[1])
     assert not np.array_equal(runs[0], runs[2])
     np.testing.assert_allclose(runs[0], runs[2], atol=0.1)  # same truth, different noise
+
+
+def test_levenberg_marquardt_fallback_finds_the_newton_pose_from_a_far_start() -> None:
+    """The rare FK fallback (scipy imported when it runs) lands on the pose Newton finds from a warm start."""
+    rig = SimulatedRig(ROBOT, RigConfig(errors=load_errors("table5"), seed=3))
+    rig.move_to_lengths(rig.controller_ik(ROBOT.home + np.array([50.0, -30.0, 20.0, 3.0, -2.0, 5.0])))
+    pose = rig.true_pose()
+    far_start = _rotation_from_pose(ROBOT.home + np.array([0.0, 0.0, 0.0, 10.0, -10.0, 20.0]))
+    target = rig.true_lengths(rig.reported_lengths())
+    R, t = rig._solve_fk_lm(target, far_start, ROBOT.home[:3], rig.reported_lengths())
+    np.testing.assert_allclose(_pose_from_rotation(R, t), pose, rtol=0, atol=1e-9)
