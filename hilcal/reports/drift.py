@@ -13,10 +13,8 @@ from collections.abc import Sequence
 from datetime import datetime
 from typing import Any
 
-from matplotlib.figure import Figure
-
 from hilcal.drift import describe
-from hilcal.reports.figures import fixed_margins, png_base64
+from hilcal.reports.figures import fixed_margins, new_figure, png_base64
 
 MAX_PANELS = 12
 
@@ -37,7 +35,7 @@ def trend_png(drift: dict[str, Any], names: Sequence[str] | None = None) -> str 
         return None
     cols = min(3, len(names))
     rows = math.ceil(len(names) / cols)
-    fig = Figure(figsize=(4.2 * cols, 2.6 * rows))
+    fig = new_figure(4.2 * cols, 2.6 * rows)
     threshold = float(drift.get("threshold_mm") or 0.0)
     for k, name in enumerate(names):
         p = by_name[name]

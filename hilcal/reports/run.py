@@ -19,14 +19,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from matplotlib.figure import Figure
 
 from hilcal.identification import IdentificationResult
 from hilcal.metrics import AccuracySummary, Indicators
 from hilcal.reports.adaptive import adaptive_html
 from hilcal.reports.certificate import signoff_html
 from hilcal.reports.drift import drift_html
-from hilcal.reports.figures import fixed_margins, plain_log_scale, png_base64
+from hilcal.reports.figures import fixed_margins, new_figure, plain_log_scale, png_base64
 from hilcal.reports.physics import physics_html
 from hilcal.reports.run_sections import (
     compensation_html,
@@ -244,7 +243,7 @@ def _per_pose_plot(r: RunReport, which: int, label: str, unit: str) -> str:
     """Fig. 13 (which=0, position) or Fig. 14 (which=1, orientation): error per verification pose."""
     before = np.asarray(r.per_pose_before[which], dtype=float)
     poses = np.arange(1, before.size + 1)
-    fig = Figure(figsize=(9, 3.8))
+    fig = new_figure(9, 3.8)
     ax = fig.subplots()
     ax.plot(poses, before, "o-", color="tab:red", label="before calibration (measured)")
     title = f"Absolute {label} error at the verification poses"
@@ -296,7 +295,7 @@ def _parameter_plot(r: RunReport) -> str | None:
     groups = _group_by_leg(ref.names)
     ncols = 3 if len(groups) > 1 else 1
     nrows = math.ceil(len(groups) / ncols)
-    fig = Figure(figsize=(13, 3.3 * nrows))
+    fig = new_figure(13, 3.3 * nrows)
     axes = np.atleast_1d(fig.subplots(nrows, ncols, squeeze=False)).ravel()
     styles = {"ls": ("o", "tab:blue", -0.15), "linf": ("D", "tab:orange", 0.15)}
     for ax, (group, idx) in zip(axes, groups.items(), strict=False):
@@ -333,7 +332,7 @@ def _comparison_plot(r: RunReport) -> str:
                for e in _ordered(r.predicted_after)]
     if r.verify_after is not None:
         series.append((f"after, {ESTIMATOR_LABELS.get(r.chosen, r.chosen)} (measured)", r.verify_after))
-    fig = Figure(figsize=(12, 4))
+    fig = new_figure(12, 4)
     axes = fig.subplots(1, 2)
     width = 0.8 / len(series)
     xs = np.arange(len(INDICATORS))
