@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import gc
 import signal
 import sys
 
@@ -20,6 +21,12 @@ def pytest_configure(config) -> None:
     Ctrl-C. Restored in every process (xdist workers included) before any test runs; children inherit it."""
     if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def pytest_collection_finish(session) -> None:
+    """What collection imported and built lives as long as the session: moved out of the garbage collector's sight
+    (gc.freeze), a full collection in a worker no longer walks it again (about 2 CPU s per worker over the suite)."""
+    gc.freeze()
 
 
 @pytest.fixture(autouse=True)

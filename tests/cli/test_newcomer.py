@@ -26,6 +26,7 @@ from hilcal.robot import load_robot
 from procedures.cli.app import app
 from procedures.cli.sim_station import SIM_TIMING
 from procedures.plan import make_plan, save_plan
+from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import DEVICES_INSTANT, INSTANT_SIM
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -64,16 +65,14 @@ def newcomer(tmp_path_factory: pytest.TempPathFactory) -> dict:
     work = tmp_path_factory.mktemp("newcomer")
     (work / "geometry.toml").write_text(_blocks(_section("Describing your machine"), "toml")[0])
     to_robot, to_run = _commands(_blocks(_section("Your machine, in simulation"), "sh")[0])
-    made = subprocess.run([sys.executable, "-m", "procedures.cli", *to_robot], cwd=work, env=_env(work),
-                          capture_output=True, text=True, timeout=120, check=False)
+    made = hilcal_in_process(*to_robot, cwd=work, env=_env(work))
     plan = work / "small_plan.json"
     if made.returncode == 0:  # a small plan for the newcomer's robot, without the settle wait
         save_plan(make_plan(load_robot(work / "robot.toml"), 0, n_measure=12, n_verify=6, settle_s=0.0,
                             timing=SIM_TIMING.timing()), plan)
     (work / "instant.toml").write_text(INSTANT_SIM)
-    ran = subprocess.run([sys.executable, "-m", "procedures.cli", *to_run, "--sim-config", str(work / "instant.toml"),
-                          "--plan", str(plan)], cwd=work, env=_env(work), capture_output=True, text=True, timeout=240,
-                         check=False)
+    ran = hilcal_in_process(*to_run, "--sim-config", str(work / "instant.toml"), "--plan", str(plan), cwd=work,
+                            env=_env(work))
     folders = sorted((work / "runs").glob("*")) if (work / "runs").is_dir() else []
     return {"work": work, "made": made, "ran": ran, "run": folders[0] if folders else None,
             "commands": (to_robot, to_run)}

@@ -1,24 +1,19 @@
 """`hilcal history`, `hilcal drift`, `hilcal records sync|machines` on real databases (a SQLite file and the
-throw-away PostgreSQL server), and two `hilcal run --sim` at once recording into one PostgreSQL database."""
+throw-away PostgreSQL server). Two `hilcal run --sim` at once recording into one PostgreSQL database: the two faulted
+runs of tests/cli/links/test_soak.py."""
 
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from datetime import UTC, datetime, timedelta
-from pathlib import Path
 
 import numpy as np
-import pytest
 from typer.testing import CliRunner
 
 from procedures.cli.app import app
 from procedures.journal import Journal
 from procedures.records import Records
 from procedures.records.sync import stage
-from tests.cli.sim_speed import INSTANT_SIM
 
 runner = CliRunner()
 
@@ -101,28 +96,3 @@ def test_records_sync_writes_what_a_journal_kept(tmp_path):
     with Records(target) as db:
         assert [u["upload_id"] for u in db.run("r1")["uploads"]] == ["r1/upload"]
     assert runner.invoke(app, ["records", "sync", str(tmp_path / "nope")]).exit_code == 2
-
-
-@pytest.mark.timeout(420)
-def test_two_simulated_runs_at_once_record_into_one_postgresql_database(pg_url, tmp_path, small_plan):
-    env = {**os.environ, "MPLBACKEND": "Agg", "HILCAL_RECORDS": str(tmp_path / "not-used.sqlite")}
-    (tmp_path / "sim.toml").write_text(INSTANT_SIM)
-    procs = [subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", "--sim", "--yes", "--out",
-                               str(tmp_path / name), "--records", pg_url, "--operator", name, "--sim-config",
-                               str(tmp_path / "sim.toml"), "--plan", str(small_plan)],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env) for name in ("A", "B")]
-    outputs = [p.communicate(timeout=400)[0].decode() for p in procs]
-    assert [p.returncode for p in procs] == [0, 0], outputs
-    history = runner.invoke(app, ["history", "--records", pg_url, "--json"])
-    entries = [e for e in json.loads(history.output)["entries"] if e["kind"] == "run"]
-    assert sorted(e["operator"] for e in entries) == ["A", "B"]
-    assert {e["status"] for e in entries} == {"complete"} and {e["machine"] for e in entries} == {"paper-table1"}
-    # the commit and the save, each with its own record
-    assert all([u["outcome"] for u in e["uploads"]] == ["committed", "saved"] for e in entries)
-    with Records(pg_url) as db:
-        for e in entries:
-            assert len(db.run_parameters(e["run_id"])) == 48
-        assert len(db.calibrations("paper-table1")) == 2
-    reports = [json.loads((tmp_path / name / "report.json").read_text()) for name in ("A", "B")]
-    assert sorted(r["drift"]["n_calibrations"] for r in reports) in ([1, 2], [2, 2], [1, 1])
-    assert not Path(tmp_path / "not-used.sqlite").exists()

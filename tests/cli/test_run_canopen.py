@@ -10,9 +10,6 @@ diagnosis predicted (within 1.5 times). One run, shared by the module.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 import tomllib
 from pathlib import Path
 
@@ -20,6 +17,7 @@ import pytest
 
 from procedures.cli.sim_station import HX6_MAPPING
 from procedures.sections.controller import CanopenControllerSection
+from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import INSTANT_SIM
 
 pytestmark = pytest.mark.timeout(300)
@@ -40,11 +38,9 @@ c_mm_per_kn = 0.006
 def run(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path) -> tuple[int, str, Path]:
     tmp = tmp_path_factory.mktemp("canopen_run")
     (tmp / "sim.toml").write_text(INSTANT_SIM + RIG)
-    env = {**os.environ, "HILCAL_RECORDS": str(tmp / "records.sqlite"), "COLUMNS": "200"}
-    proc = subprocess.run([sys.executable, "-m", "procedures.cli", "run", "--sim", "--yes", "--operator", "T",
-                           "--controller", "canopen", "--sim-config", str(tmp / "sim.toml"), "--plan",
-                           str(instant_plan), "--out", str(tmp / "run")],
-                          capture_output=True, text=True, env=env, timeout=280)
+    env = {"HILCAL_RECORDS": str(tmp / "records.sqlite"), "COLUMNS": "200"}
+    proc = hilcal_in_process("run", "--sim", "--yes", "--operator", "T", "--controller", "canopen", "--sim-config",
+                             str(tmp / "sim.toml"), "--plan", str(instant_plan), "--out", str(tmp / "run"), env=env)
     return proc.returncode, proc.stdout + proc.stderr, tmp / "run"
 
 

@@ -10,7 +10,6 @@ so the replay runs what a user would load.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -25,6 +24,7 @@ from procedures.cli.simulated_recording import simulate_with_truth
 from procedures.cli.twin import compare, write_twin
 from procedures.plan import make_plan, save_plan
 from sim_devices.rig.config import RigConfig
+from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import DEVICES_INSTANT
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -87,9 +87,7 @@ def test_a_study_recording_s_twin_holds_its_effects(case, tmp_path):
 
 
 def _hilcal(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg"}
-    return subprocess.run([sys.executable, "-m", "procedures.cli", *args], capture_output=True, text=True, env=env,
-                          cwd=cwd, timeout=600, check=False)
+    return hilcal_in_process(*args, env={"MPLBACKEND": "Agg"}, cwd=cwd)
 
 
 @pytest.mark.timeout(900)

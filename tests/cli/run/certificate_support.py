@@ -3,14 +3,13 @@ runner and the PDF's text."""
 
 from __future__ import annotations
 
-import os
 import subprocess
-import sys
 import unicodedata
 from pathlib import Path
 
 from pypdf import PdfReader
 
+from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import instant_timing
 
 OPERATOR = "A. Tester"
@@ -32,9 +31,8 @@ rp_position_mm = 0.02
 
 
 def hilcal(*args: str, records: Path) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "HILCAL_RECORDS": str(records), "COLUMNS": "200"}
-    return subprocess.run([sys.executable, "-m", "procedures.cli", *args], capture_output=True, text=True, env=env,
-                          timeout=400, check=False)
+    """The command in this process (tests/cli/in_process.py), with its own records file and a wide terminal."""
+    return hilcal_in_process(*args, env={"HILCAL_RECORDS": str(records), "COLUMNS": "200"})
 
 
 def pdf_text(path: Path) -> str:

@@ -1,4 +1,4 @@
-"""`hilcal run --sim --adaptive`: whole runs on the simulated devices, started at once (near-instant simulator).
+"""`hilcal run --sim --adaptive`: whole runs on the simulated devices (near-instant simulator), in the test's process.
 
 - With a target: the run measures until the verify maximum's 95 % bound is below it, then verifies as the fixed plan
   does; report.json, the terminal's end and the certificate say why it stopped, what it predicted and what the
@@ -12,16 +12,14 @@
 from __future__ import annotations
 
 import json
-import os
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from hilcal.robot import default_robot
 from procedures.plan import load_plan
+from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import INSTANT_SIM, instant_timing
 
 pytestmark = pytest.mark.timeout(300)
@@ -49,15 +47,14 @@ def runs(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path) -> dict[s
     asks = {"target": ("sim.toml", "--target-mm", str(TARGET_MM)),
             "physics": ("physics.toml", "--plan", str(instant_plan)),
             "short": ("sim.toml", "--max-minutes", "0.45", "--plan", str(instant_plan))}
-    procs = {}
+    out = {}
     for name, (config, *args) in asks.items():
-        env = {**os.environ, "HILCAL_RECORDS": str(tmp / f"{name}.sqlite"), "COLUMNS": "200"}
-        procs[name] = subprocess.Popen(
-            [sys.executable, "-m", "procedures.cli", "run", "--sim", "--yes", "--adaptive", "--operator", "T",
-             "--sim-config", str(tmp / config), "--station", str(tmp / "station.toml"), "--station-timing",
-             "--out", str(tmp / name),
-             *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-    return {name: (proc.wait(280), proc.stdout.read(), tmp / name) for name, proc in procs.items()}
+        done = hilcal_in_process("run", "--sim", "--yes", "--adaptive", "--operator", "T", "--sim-config",
+                                 str(tmp / config), "--station", str(tmp / "station.toml"), "--station-timing", "--out",
+                                 str(tmp / name), *args,
+                                 env={"HILCAL_RECORDS": str(tmp / f"{name}.sqlite"), "COLUMNS": "200"})
+        out[name] = (done.returncode, done.stdout + done.stderr, tmp / name)
+    return out
 
 
 def test_a_target_run_stops_below_it_and_the_verification_measures_the_prediction(runs) -> None:

@@ -9,15 +9,14 @@ claims are the measure phase's searches, the diagnosis and a bound of 10 µm on 
 from __future__ import annotations
 
 import json
-import os
 import sqlite3
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import INSTANT_SIM
 
 
@@ -36,10 +35,9 @@ def _run(tmp_path: Path, config: str, plan: Path, controller: str = "") -> tuple
         "[cmm]\n", '[cmm]\non_collision = "stop"\n')
     (tmp_path / "sim.toml").write_text(sim + config)
     out = tmp_path / "run"
-    env = {**os.environ, "HILCAL_RECORDS": str(tmp_path / "records.sqlite"), "COLUMNS": "200"}
-    done = subprocess.run([sys.executable, "-m", "procedures.cli", "run", "--sim", "--yes", "--plan", str(plan),
-                           "--sim-config", str(tmp_path / "sim.toml"), "--out", str(out)],
-                          capture_output=True, text=True, env=env, timeout=280, check=False)
+    env = {"HILCAL_RECORDS": str(tmp_path / "records.sqlite"), "COLUMNS": "200"}
+    done = hilcal_in_process("run", "--sim", "--yes", "--plan", str(plan), "--sim-config", str(tmp_path / "sim.toml"),
+                             "--out", str(out), env=env)
     return done, out
 
 

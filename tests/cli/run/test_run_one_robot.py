@@ -6,10 +6,7 @@ only that names one (a digital twin's `sim_config.toml`), keeps it on resume, an
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +15,7 @@ from typer.testing import CliRunner
 
 from procedures.cli.app import app
 from procedures.journal import Journal
+from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import INSTANT_SIM
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -48,10 +46,10 @@ def _refused(args: list[str], out: Path) -> str:
 def test_the_simulators_robot_is_the_runs_and_stays_so_on_resume(tmp_path):
     config = _twin(tmp_path / "twin")
     out = tmp_path / "run"
-    env = {**os.environ, "HILCAL_RECORDS": str(tmp_path / "records.sqlite"), "COLUMNS": "200"}
-    command = [sys.executable, "-m", "procedures.cli", "run", "--out", str(out)]
-    declined = subprocess.run([*command, "--sim", "--sim-config", str(config), "--operator", "T"], input="n\n",
-                              capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120, check=False)
+    env = {"HILCAL_RECORDS": str(tmp_path / "records.sqlite"), "COLUMNS": "200"}
+    command = ["run", "--out", str(out)]
+    declined = hilcal_in_process(*command, "--sim", "--sim-config", str(config), "--operator", "T", input="n\n",
+                                 env=env, cwd=tmp_path)
     assert declined.returncode == 3, declined.stdout + declined.stderr  # no at the first question: resumable
     plan = json.loads((out / "plan.json").read_text())
     assert plan["robot_name"] == "small-electric-hexapod"
@@ -60,8 +58,8 @@ def test_the_simulators_robot_is_the_runs_and_stays_so_on_resume(tmp_path):
     with Journal(out / "journal.sqlite") as journal:
         run_id = journal.run_info()["run_id"]
 
-    resumed = subprocess.run([*command, "--resume", run_id, "--yes"], capture_output=True, text=True, env=env,
-                             cwd=ROOT, timeout=280, check=False)  # another folder: the robot's path is absolute
+    resumed = hilcal_in_process(*command, "--resume", run_id, "--yes", env=env,
+                                cwd=ROOT)  # another folder: the robot's path is absolute
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
     report = json.loads((out / "report.json").read_text())
     assert report["status"] == "complete" and report["robot"]["name"] == "small-electric-hexapod"

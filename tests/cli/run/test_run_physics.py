@@ -10,9 +10,6 @@ faults into joint errors of tens of mm).
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +17,7 @@ import pytest
 
 from hilcal.protocols.compensation import block_from_words
 from procedures.records import Records
+from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import INSTANT_SIM
 
 pytestmark = pytest.mark.timeout(300)
@@ -36,29 +34,23 @@ c_mm_per_kn = 0.006
 """
 
 
-def _start(tmp: Path, name: str, plan: Path, *args: str) -> subprocess.Popen[str]:
-    env = {**os.environ, "HILCAL_RECORDS": str(tmp / f"{name}.sqlite"), "COLUMNS": "200"}
-    return subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", "--sim", "--operator", "T",
-                             "--sim-config", str(tmp / "sim.toml"), "--plan", str(plan), "--out", str(tmp / name),
-                             *args],
-                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=env)
+def _run(tmp: Path, name: str, plan: Path, *args: str, answers: str | None = None) -> tuple[int, str, Path]:
+    """The run in this process (tests/cli/in_process.py): its exit code, what it printed and its folder."""
+    done = hilcal_in_process("run", "--sim", "--operator", "T", "--sim-config", str(tmp / "sim.toml"), "--plan",
+                             str(plan), "--out", str(tmp / name), *args, input=answers,
+                             env={"HILCAL_RECORDS": str(tmp / f"{name}.sqlite"), "COLUMNS": "200"})
+    return done.returncode, done.stdout + done.stderr, tmp / name
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path, small_plan: Path
          ) -> dict[str, tuple[int, str, Path]]:
-    """The same rig seed twice at once: physics on (answered at the terminal) and physics off (unattended; the small
-    plan: its claim is the refusal, which the first poses already show)."""
+    """The same rig seed twice: physics on (answered at the terminal) and physics off (unattended; the small plan: its
+    claim is the refusal, which the first poses already show)."""
     tmp = tmp_path_factory.mktemp("physics")
     (tmp / "sim.toml").write_text(INSTANT_SIM + RIG)
-    procs = {"on": _start(tmp, "on", instant_plan), "off": _start(tmp, "off", small_plan, "--yes", "--physics",
-                                                                   "off")}
-    out = {}
-    for name, proc in procs.items():
-        stdout, _ = proc.communicate("y\ny\ny\n" if name == "on" else None, timeout=280)
-        out[name] = (proc.returncode, stdout, tmp / name)
-    return out
+    return {"on": _run(tmp, "on", instant_plan, answers="y\ny\ny\n"),
+            "off": _run(tmp, "off", small_plan, "--yes", "--physics", "off")}
 
 
 def test_the_run_corrects_the_faults_it_finds_and_proves_it_at_the_machine(runs) -> None:

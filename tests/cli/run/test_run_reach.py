@@ -6,14 +6,12 @@ refuses (the run would stop there, and a resume would stop there again)."""
 from __future__ import annotations
 
 import json
-import os
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import INSTANT_SIM
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -30,10 +28,9 @@ enabled = true
 gain_error_ppm = [0.0, 2000.0, 0.0, 0.0, -1500.0, 0.0]
 """)
     out = tmp_path / "run"
-    env = {**os.environ, "HILCAL_RECORDS": str(tmp_path / "records.sqlite"), "COLUMNS": "200"}
-    done = subprocess.run([sys.executable, "-m", "procedures.cli", "run", "--sim", "--yes", "--robot", str(SMALL),
-                           "--sim-config", str(tmp_path / "sim.toml"), "--out", str(out)],
-                          capture_output=True, text=True, env=env, timeout=280, check=False)
+    env = {"HILCAL_RECORDS": str(tmp_path / "records.sqlite"), "COLUMNS": "200"}
+    done = hilcal_in_process("run", "--sim", "--yes", "--robot", str(SMALL), "--sim-config", str(tmp_path / "sim.toml"),
+                             "--out", str(out), env=env)
     assert done.returncode == 0, done.stdout + done.stderr
     report = json.loads((out / "report.json").read_text())
     assert report["status"] == "complete" and report["compensation"]["compensation_block"] is not None

@@ -13,10 +13,8 @@ and the resume completes it; a station file whose [tracker] cannot be measured w
 from __future__ import annotations
 
 import json
-import os
 import sqlite3
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +22,7 @@ import pytest
 
 from hilcal.protocols.compensation import block_from_words
 from hilcal.robot import default_robot
+from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import INSTANT_SIM, plan_rows
 
 pytestmark = pytest.mark.timeout(420)
@@ -43,12 +42,9 @@ DEFAULT_STATION_MM = np.array([6000.0, -1500.0, 1800.0])
 """Where the simulated tracker stands in the base frame by default (docs/protocols.md)."""
 
 
-def _hilcal(tmp: Path, *args: str, wait: bool = True) -> subprocess.Popen[str] | subprocess.CompletedProcess[str]:
-    env = {**os.environ, "HILCAL_RECORDS": str(tmp / "records.sqlite"), "COLUMNS": "200"}
-    cmd = [sys.executable, "-m", "procedures.cli", *args]
-    if wait:
-        return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=400, check=False)
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+def _hilcal(tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """The command in this process (tests/cli/in_process.py), with the folder's records file and a wide terminal."""
+    return hilcal_in_process(*args, env={"HILCAL_RECORDS": str(tmp / "records.sqlite"), "COLUMNS": "200"})
 
 
 def _rows(run: Path) -> list[tuple]:

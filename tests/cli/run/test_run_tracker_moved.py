@@ -59,15 +59,15 @@ SET_UP_ELSEWHERE = INSTANT_SIM.replace("[tracker]\n", f"[tracker]\nmove_every_po
 def runs(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path, calibration_plan: Path
          ) -> dict[str, tuple[int, str, Path]]:
     """The tracker moved 40 mm every 20 poses (the default plan), and moved 400 mm after 20 poses (the calibration
-    plan), at once."""
+    plan)."""
     tmp = tmp_path_factory.mktemp("moved")
     (tmp / "moved.toml").write_text(MOVED)
     (tmp / "too_far.toml").write_text(TOO_FAR)
     plans = {"moved": instant_plan, "too_far": calibration_plan}
-    procs = {name: _hilcal(tmp, "run", "--sim", "--yes", "--instrument", "tracker", "--operator", "T",
-                           "--sim-config", str(tmp / f"{name}.toml"), "--plan", str(plan),
-                           "--out", str(tmp / name), wait=False) for name, plan in plans.items()}
-    return {name: (proc.wait(400), proc.stdout.read(), tmp / name) for name, proc in procs.items()}
+    done = {name: _hilcal(tmp, "run", "--sim", "--yes", "--instrument", "tracker", "--operator", "T",
+                          "--sim-config", str(tmp / f"{name}.toml"), "--plan", str(plan), "--out", str(tmp / name))
+            for name, plan in plans.items()}
+    return {name: (run.returncode, run.stdout + run.stderr, tmp / name) for name, run in done.items()}
 
 
 def _details(run: Path) -> list[dict]:

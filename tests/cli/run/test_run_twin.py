@@ -6,13 +6,12 @@ same first effect on the same leg within 10 %."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import DEVICES_INSTANT
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -20,8 +19,7 @@ ROBOT = ROOT / "examples" / "hexapod_stroke320.toml"
 
 
 def _hilcal(*args: str, env: dict) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "procedures.cli", *args], capture_output=True, text=True, env=env,
-                          timeout=250, check=False)
+    return hilcal_in_process(*args, env=env)
 
 
 def _first_effect(diagnosis: dict) -> tuple[str, int, float]:
@@ -33,7 +31,7 @@ def _first_effect(diagnosis: dict) -> tuple[str, int, float]:
 
 @pytest.mark.timeout(300)
 def test_the_twin_of_a_4_percent_fault_runs_and_shows_the_same_fault(tmp_path):
-    env = {**os.environ, "HILCAL_RECORDS": str(tmp_path / "records.sqlite"), "COLUMNS": "200"}
+    env = {"HILCAL_RECORDS": str(tmp_path / "records.sqlite"), "COLUMNS": "200"}
     (tmp_path / "rig.toml").write_text(f'robot = "{ROBOT}"\n[rig]\nseed = 2\n[rig.effects.sensor_scale]\n'
                                        "enabled = true\ngain_error_ppm = [0.0, 0.0, 40000.0, 0.0, 0.0, 0.0]\n")
     done = _hilcal("simulate", "--out", str(tmp_path / "rec.csv"), "--sim-config", str(tmp_path / "rig.toml"),
