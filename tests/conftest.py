@@ -25,7 +25,7 @@ def pytest_configure(config) -> None:
 
 def pytest_collection_finish(session) -> None:
     """What collection imported and built lives as long as the session: moved out of the garbage collector's sight
-    (gc.freeze), a full collection in a worker no longer walks it again (about 2 CPU s per worker over the suite)."""
+    (gc.freeze), a full collection in a worker no longer walks it again."""
     gc.freeze()
 
 

@@ -3,7 +3,7 @@ measurement lost or duplicated, no half-written parameter set, nothing commanded
 dropped in the upload and a CMM that falls silent or garbles its replies here, link gaps in test_link_guard.py.
 
 The two faulted runs run at once and record into one PostgreSQL database, so they are also the records' test of two
-runs at once (a run costs about 9 CPU s; tests of claims about the same runs share them)."""
+runs at once (a whole run is expensive: tests of claims about the same runs share them)."""
 
 from __future__ import annotations
 
