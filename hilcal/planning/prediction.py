@@ -159,6 +159,9 @@ class Draws:
     """[42, D]: for the part of δp that the model's misfit makes (``predict_verify_max``'s misfit_covariance)."""
     _scales: dict[tuple[int, float], np.ndarray] = field(default_factory=dict, compare=False, repr=False)
     """The χ² factors already computed (a run predicts many designs under one noise estimate)."""
+    _scaled: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict, compare=False,
+                                                                           repr=False)
+    """The draws scaled by one noise estimate (`scaled`), for the last two estimates: 20 MB each at 10000 draws."""
 
     @classmethod
     def seeded(cls, seed: int, n_verify: int, n_draws: int) -> Draws:
@@ -175,6 +178,25 @@ class Draws:
                 del self._scales[next(iter(self._scales))]
             self._scales[key] = _chi2_scale(self.uniform[row], dof)
         return self._scales[key]
+
+    def scaled(self, noise: PoseNoise) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The draws under one noise estimate: the parameter draws [6 * 42, D] with each component's χ² factor, the
+        verify noise [V, 3, D] in mm, and the maximum over the verify poses of its length [D] (the floor). They depend
+        on the noise alone, so every design predicted under one estimate shares them."""
+        sigma = np.asarray(noise.sigma_mm, dtype=float)
+        rows = (0, 0, 0, 3, 3, 3) if noise.shared else tuple(range(6))
+        key = (rows, tuple(map(float, noise.dof)), tuple(sigma[:3].tolist()))
+        if key not in self._scaled:
+            scale = np.stack([self.chi2_scale(row, noise.dof[k]) for k, row in enumerate(rows)])
+            parameters = (self.parameters * scale[:, None, :]).reshape(len(rows) * N_PARAMETERS, -1)
+            verify_noise = self.verify * (sigma[:3, None] * scale[:3])
+            floor = np.linalg.norm(verify_noise, axis=1).max(axis=0)
+            for shared in (parameters, verify_noise, floor):
+                shared.flags.writeable = False
+            if len(self._scaled) >= 2:
+                del self._scaled[next(iter(self._scaled))]
+            self._scaled[key] = (parameters, verify_noise, floor)
+        return self._scaled[key]
 
 
 @dataclass(frozen=True)
@@ -230,17 +252,14 @@ def predict_verify_max(row_jacobians: np.ndarray, verify_position_jacobians: np.
     parts = parameter_covariance_parts(row_jacobians)
     flat = Jv.reshape(-1, N_PARAMETERS)
     sigma = np.asarray(noise.sigma_mm)
-    rows = (0, 0, 0, 3, 3, 3) if noise.shared else range(6)
-    scale = np.stack([draws.chi2_scale(row, noise.dof[k]) for k, row in enumerate(rows)])
+    scaled_parameters, verify_noise, floor = draws.scaled(noise)
     weights = np.concatenate([flat @ _sqrt_psd(parts[k]) * sigma[k] for k in range(6)], axis=1)
-    part = weights @ (draws.parameters * scale[:, None, :]).reshape(len(weights.T), -1)
+    part = weights @ scaled_parameters
     extra = None if misfit_covariance is None else np.asarray(misfit_covariance, dtype=float)[:N_PARAMETERS,
                                                                                                 :N_PARAMETERS]
     if extra is not None:
         part = part + flat @ _sqrt_psd(extra) @ draws.misfit
-    verify_noise = draws.verify * (sigma[:3, None] * scale[:3])
     worst = np.linalg.norm(part.reshape(Jv.shape[0], 3, -1) + verify_noise, axis=1).max(axis=0)
-    floor = np.linalg.norm(verify_noise, axis=1).max(axis=0)
     low, mid, high = np.quantile(worst, [1.0 - confidence, 0.5, confidence])
     covariance = np.einsum("k,kij->ij", sigma**2, parts) + (0.0 if extra is None else extra)
     per_pose = np.einsum("vij,jk,vik->v", Jv, covariance, Jv)

@@ -93,6 +93,24 @@ def test_an_uncertain_noise_level_widens_the_bound_and_the_bound_scales_with_the
     assert double.parameter_rms_mm == pytest.approx(2 * sure.parameter_rms_mm, rel=1e-9)
 
 
+def test_draws_shared_across_noise_estimates_predict_as_fresh_draws(robot, rng):
+    """A run predicts many designs under each noise estimate with one set of draws, which keeps the draws scaled by the
+    last estimates: every estimate, in any order, must predict exactly what fresh draws of the same seed predict."""
+    measure, verify = feasible_random_poses(robot, 12, rng), feasible_random_poses(robot, 6, rng)
+    J, Jv = pose_jacobians(robot, measure), pose_jacobians(robot, verify)[:, :3]
+    a = PoseNoise.isotropic(0.005, 0.004, 9, 9, "4 repeats")
+    noises = [a, PoseNoise(a.sigma_mm, a.dof, False, "per component"),
+              PoseNoise.isotropic(0.006, 0.004, 9, 9, "4 repeats"), PoseNoise.isotropic(0.005, 0.004, 15, 9, "6"),
+              PoseNoise((0.005, 0.004, 0.003, 0.004, 0.004, 0.004), (9, 8, 7, 9, 9, 9), False, "per component"),
+              PoseNoise.isotropic(0.005, 0.007, 9, 9, "4 repeats"), a]
+    shared = Draws.seeded(2, len(verify), 2000)
+    for noise in noises:
+        fresh = predict_verify_max(J, Jv, noise, Draws.seeded(2, len(verify), 2000))
+        again = predict_verify_max(J, Jv, noise, shared)
+        assert (again.max_mm, again.low_mm, again.upper_mm, again.floor_upper_mm) == (
+            fresh.max_mm, fresh.low_mm, fresh.upper_mm, fresh.floor_upper_mm)
+
+
 def test_covariance_parts_add_up_to_the_least_squares_covariance(robot, rng):
     J = pose_jacobians(robot, feasible_random_poses(robot, 10, rng))
     parts = parameter_covariance_parts(J)
