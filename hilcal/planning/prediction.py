@@ -191,8 +191,8 @@ class Draws:
             parameters = (self.parameters * scale[:, None, :]).reshape(len(rows) * N_PARAMETERS, -1)
             verify_noise = self.verify * (sigma[:3, None] * scale[:3])
             floor = np.linalg.norm(verify_noise, axis=1).max(axis=0)
-            for shared in (parameters, verify_noise, floor):
-                shared.flags.writeable = False
+            for array in (parameters, verify_noise, floor):
+                array.flags.writeable = False
             if len(self._scaled) >= 2:
                 del self._scaled[next(iter(self._scaled))]
             self._scaled[key] = (parameters, verify_noise, floor)
