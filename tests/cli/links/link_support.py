@@ -4,15 +4,14 @@ received in one, and the run's journal."""
 from __future__ import annotations
 
 import json
-import os
 import sqlite3
 import subprocess
-import sys
 from pathlib import Path
 
 import cantools
 
 import hilcal.protocols
+from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import INSTANT_SIM
 
 DBC = cantools.database.load_file(str(Path(hilcal.protocols.__file__).with_name("controller.dbc")))
@@ -24,9 +23,9 @@ MARGIN_S = 0.1
 
 
 def run_hilcal(args: list[str], tmp: Path) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "HILCAL_RECORDS": str(tmp / "records.sqlite")}
-    return subprocess.run([sys.executable, "-m", "procedures.cli", "run", "--yes", *args], capture_output=True,
-                          text=True, env=env, timeout=600, check=False)
+    """`hilcal run --yes ARGS` in this process (tests/cli/in_process.py): the claims are about what the run did in
+    its gaps, not about its being a process of its own; its simulator is still a process, over real transports."""
+    return hilcal_in_process("run", "--yes", *args, env={"HILCAL_RECORDS": str(tmp / "records.sqlite")})
 
 
 def sim_config(tmp: Path, **gaps: object) -> Path:

@@ -1,11 +1,13 @@
 """`hilcal run --sim --panel` in headless Chromium, the adaptive plan chosen on the start form: the page shows the live
 predicted accuracy with its band, the forecast remaining time, the poses as the plan chooses them, and the stop.
 
-The run's pace is not what is tested, so the servo is the near-instant one (tests/cli/sim_speed.py); the CMM probes
-at 1/20 of real time (about 1 s a pose), so a live prediction stays on the page for several seconds before the stop:
-the page draws the latest state once per animation frame, and on a loaded 2-core machine its updates lagged the
-server by up to 6.6 s, so a browser starved for seconds skips what changed meanwhile. Once the measure phase has
-stopped the run is ended (the whole run from the page is tests/cli/panel/test_panel_browser.py's).
+The run's pace is not what is tested, so the servo is the near-instant one (tests/cli/sim_speed.py) and the run is
+given the shared default plan as its reference (tests/cli/conftest.py: no design in the test); the CMM probes at 1/60
+of real time (about 2 s a pose, measured: 1/20 took 6.4 s a pose), so a live prediction stays on the page for several
+poses before the stop: the page draws the latest state once per animation frame, and on a loaded 2-core machine its
+updates lagged the server by up to 6.6 s, so a browser starved for seconds skips what changed meanwhile (the page's
+own record of what it drew, below, keeps a state it showed however briefly). Once the measure phase has stopped the
+run is ended (the whole run from the page is tests/cli/panel/test_panel_browser.py's).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import pytest
 from tests.cli.browser_support import LATENCIES_S, chromium, free_port, require_chromium, text, wait_for
 from tests.cli.sim_speed import INSTANT_SIM, instant_timing
 
-CMM_PACE = 1 / 20
+CMM_PACE = 1 / 60
 
 pytestmark = pytest.mark.timeout(480)
 FIRST_PREDICTION_S = 300
@@ -60,7 +62,8 @@ def _answer(browser, title: str) -> None:
     wait_for(lambda: browser.find_element("id", "question").get_attribute("data-id") != qid, 30, f"'{title}' answered")
 
 
-def test_the_panel_starts_an_adaptive_run_and_shows_its_prediction_and_remaining_time(tmp_path: Path) -> None:
+def test_the_panel_starts_an_adaptive_run_and_shows_its_prediction_and_remaining_time(tmp_path: Path,
+                                                                                     instant_plan: Path) -> None:
     config = INSTANT_SIM.replace("[cmm]\ntime_scale = 0.0", f"[cmm]\ntime_scale = {CMM_PACE}")
     assert str(CMM_PACE) in config
     (tmp_path / "sim.toml").write_text(config)
@@ -71,7 +74,7 @@ def test_the_panel_starts_an_adaptive_run_and_shows_its_prediction_and_remaining
     with chromium() as browser, log.open("w") as sink:
         proc = subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", "--panel", "--port", str(port),
                                  "--sim", "--sim-config", str(tmp_path / "sim.toml"), "--station-timing", "--station",
-                                 str(tmp_path / "station.toml"), "--out", str(out)],
+                                 str(tmp_path / "station.toml"), "--plan", str(instant_plan), "--out", str(out)],
                                 stdin=subprocess.DEVNULL, stdout=sink, stderr=subprocess.STDOUT, env=env)
         try:
             wait_for(lambda: "operator panel: http://" in log.read_text() or proc.poll() is not None, 60, "the panel")
