@@ -13,6 +13,8 @@ processes killed by a signal (the resume tests' SIGKILL) and non-Python ones (Ch
 it also states the whole machine's busy CPU seconds over the same time (/proc/stat), and where the logged seconds go by
 test file: each test's own CPU time in its worker (a pytest plugin on PYTEST_PLUGINS) plus the processes started while
 it ran (PYTEST_CURRENT_TEST, which they inherit).
+The same code's figures differ by up to 2x between days on the shared machines this project is built on, so the
+machine's speed is stated beside them: a fixed pure-Python loop (``_speed_check``), timed before and after the suite.
 Targets: `make test` <= 5 min on 2 cores (issue 22), and pytest's own wall <= 190 s here (issue 29: 5 min on a
 machine 1.6x slower, with margin).
 """
@@ -85,6 +87,18 @@ def _kind(argv: str) -> str:
     if first.endswith(("__main__.py", "/hilcal")):
         return "`hilcal run`" if second == "run" else "other `hilcal` commands"
     return "other Python processes"
+
+
+def _speed_check(repeats: int = 3) -> float:
+    """Median wall seconds of a fixed pure-Python loop (10^7 additions): the machine's speed for the tests' kind of
+    work, most of which is Python, not BLAS. Never change it, or the figures before it are no longer comparable."""
+    times = []
+    for _ in range(repeats):
+        start, total = time.perf_counter(), 0
+        for i in range(10**7):
+            total += i
+        times.append(time.perf_counter() - start)
+    return sorted(times)[len(times) // 2]
 
 
 def _machine_busy_s() -> float | None:
@@ -195,7 +209,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             (Path(audit) / f"{PLUGIN_NAME}.py").write_text(TEST_CPU_PLUGIN.format(path=str(tests_log)))
             env["PYTHONPATH"] = os.pathsep.join(filter(None, [audit, env.get("PYTHONPATH")]))
             env["PYTEST_PLUGINS"] = ",".join(filter(None, [env.get("PYTEST_PLUGINS"), PLUGIN_NAME]))
+        speed_before = _speed_check()
         lines, output, code, machine_s = (_here if args.here else _fresh_clone)(env)
+        speed_after = _speed_check()
+        lines.append(f"- The machine's speed (`_speed_check`, a fixed pure-Python loop; lower is faster): "
+                     f"{speed_before:.2f} s before the suite and {speed_after:.2f} s after it.")
         by_process = _by_process(log, tests_log, machine_s) if args.by_process and log.exists() else []
     summary = re.findall(r"(\d+ (?:passed|failed).*?) in ([\d.]+)s", output)
     slowest = list(dict.fromkeys(re.findall(r"^([\d.]+)s (call|setup|teardown)\s+(\S+)$", output,
