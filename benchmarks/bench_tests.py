@@ -13,7 +13,7 @@ processes killed by a signal (the resume tests' SIGKILL) and non-Python ones (Ch
 it also states the whole machine's busy CPU seconds over the same time (/proc/stat), and where the logged seconds go by
 test file: each test's own CPU time in its worker (a pytest plugin on PYTEST_PLUGINS) plus the processes started while
 it ran (PYTEST_CURRENT_TEST, which they inherit).
-The same code's figures differ by up to 1.7x within an hour on the shared machines this project is built on (pytest
+The same code's figures differ by up to 1.6x within an hour on the shared machines this project is built on (pytest
 530 s in `.ci/run`, then 751 s and 855 s here, on 2026-12-03). A fixed pure-Python loop (``_speed_check``), timed
 alone before and after the suite, is stated beside them; it did not show that difference (0.66-0.74 s each time), so
 compare only figures measured back to back, and the busy CPU seconds (--by-process) rather than the wall.
