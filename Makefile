@@ -3,11 +3,11 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
-# One pytest worker more than cores: the run, soak and browser tests spend much of their time waiting on simulated
-# devices in real time, so a third worker keeps both cores busy (docs/benchmarks_tests.md).
+# One pytest worker more than cores: many tests wait on simulated devices, subprocesses or a browser in real time, so
+# a third worker keeps both cores busy (`make test` on 2 cores: 173 s with 3 workers, 210 s with 2, 2026-12-03).
 WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))
 
-.PHONY: venv demo test bench screenshot lint clean
+.PHONY: venv demo test test-slow test-all compile bench screenshot lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -23,13 +23,26 @@ demo: venv
 lint: venv
 	$(BIN)/ruff check .
 
+# `make test` leaves out the tests marked slow (pyproject.toml): the whole simulated calibration runs, the
+# headless-browser tests and the tests that take more than about 3.5 CPU seconds alone, together three quarters of the
+# suite's CPU time (docs/benchmarks_tests.md). `make test-slow` runs those; CI (.ci/run) runs both, as does
+# `make test-all`.
 # Byte-compile first: with PYTHONDONTWRITEBYTECODE set (as on the machines this project is built on), every
 # process the tests start would otherwise compile the project's sources again (~0.15 s per `hilcal` start).
 # One BLAS thread per process: the workers and the runs they start already share the cores, and OpenBLAS's own
 # threads would only spin on them for matrices of a few hundred rows.
-test: lint
+PYTEST := OPENBLAS_NUM_THREADS=1 $(BIN)/pytest --dist loadfile --no-loadscope-reorder --durations=25
+
+compile: venv
 	$(BIN)/python -m compileall -q -j0 hilcal drivers procedures sim_devices benchmarks tests >/dev/null
-	OPENBLAS_NUM_THREADS=1 $(BIN)/pytest -n $(WORKERS) --dist loadfile --no-loadscope-reorder --durations=25
+
+test: lint compile
+	$(PYTEST) -n $(WORKERS) -m "not slow"
+
+test-slow: compile
+	$(PYTEST) -n $(WORKERS) -m slow
+
+test-all: test test-slow
 
 bench: venv
 	MPLBACKEND=Agg $(BIN)/python benchmarks/run_all.py

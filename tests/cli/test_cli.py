@@ -76,6 +76,7 @@ def test_missing_file_and_bad_robot_exit_2(recording, tmp_path):
     assert result.exit_code == 2 and "legs" in result.output
 
 
+@pytest.mark.slow
 def test_identifiability_command_reports_paper_model_rank():
     result = runner.invoke(app, ["identifiability", "--model", "60"])
     assert result.exit_code == 0, result.output

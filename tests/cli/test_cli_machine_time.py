@@ -7,6 +7,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from hilcal.robot import load_robot
@@ -38,6 +39,7 @@ def _design(tmp_path: Path, minutes: float, name: str) -> tuple[int, str, Path]:
     return result.exit_code, result.output, plan_path
 
 
+@pytest.mark.slow
 def test_design_within_a_budget_writes_a_plan_that_fits(tmp_path):
     robot = load_robot(SMALL_ROBOT)
     code, output, path = _design(tmp_path, 1000.0, "full.json")

@@ -75,12 +75,14 @@ def _check(rec, robot, robot_path, tmp_path: Path) -> None:
     _check_report(tmp_path)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_real_shaped_recording_is_said_without_nan_or_empty_ranges(seed, tmp_path):
     made = real_shaped(seed)
     _check(made.recording, made.robot, ROBOT_FILE, tmp_path)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("example", ["electric_hexapod", "small_hexapod"])
 def test_the_examples_are_said_without_nan_or_empty_ranges(example, tmp_path):
     robot_path = ROOT / "examples" / example / "robot.toml"

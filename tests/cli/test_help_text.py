@@ -11,6 +11,7 @@ from __future__ import annotations
 import re
 from collections.abc import Iterator
 
+import pytest
 import typer
 from typer.core import TyperGroup
 from typer.testing import CliRunner
@@ -78,6 +79,7 @@ def test_the_check_finds_an_unescaped_word() -> None:
 
 
 
+@pytest.mark.slow
 def test_a_printed_message_keeps_its_bracketed_words(tmp_path) -> None:
     """Printed messages too: markup is off on the consoles, so a path with `[lab]` in it is printed whole."""
     folder = tmp_path / "[lab] rig"

@@ -29,6 +29,8 @@ from procedures.plan import make_plan, save_plan
 from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import DEVICES_INSTANT, INSTANT_SIM
 
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[2]
 README = (ROOT / "README.md").read_text()
 SNAKE_KEY = re.compile(r"\b[a-z][a-z0-9]*(?:_[a-z0-9]+)+\b")

@@ -105,6 +105,7 @@ def quick_start(tmp_path_factory: pytest.TempPathFactory, small_plan: Path) -> t
     return work, done.stdout + done.stderr, done.returncode
 
 
+@pytest.mark.slow
 def test_the_quick_start_runs_into_the_folder_it_prints(quick_start: tuple[Path, str, int]) -> None:
     work, output, code = quick_start
     assert code == 0, output
@@ -117,6 +118,7 @@ def test_the_quick_start_runs_into_the_folder_it_prints(quick_start: tuple[Path,
     assert f"report       runs/{run_id.group(1)}/report.html" in output
 
 
+@pytest.mark.slow
 def test_the_quick_start_says_what_it_simulated(quick_start: tuple[Path, str, int]) -> None:
     work, output, _ = quick_start
     said = " ".join(output.split())

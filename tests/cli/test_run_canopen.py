@@ -44,6 +44,7 @@ def run(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path) -> tuple[i
     return proc.returncode, proc.stdout + proc.stderr, tmp / "run"
 
 
+@pytest.mark.slow
 def test_the_canopen_run_completes_and_verifies_what_it_predicted(run) -> None:
     code, output, out = run
     assert code == 0, output
@@ -55,6 +56,7 @@ def test_the_canopen_run_completes_and_verifies_what_it_predicted(run) -> None:
     assert (out / "sim_controller.txt").read_text() == "canopen"
 
 
+@pytest.mark.slow
 def test_the_compensation_terms_went_through_the_mapping(run) -> None:
     code, output, out = run
     assert code == 0, output

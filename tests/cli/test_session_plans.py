@@ -6,7 +6,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 
+
+@pytest.mark.slow
 def test_the_calibration_plan_measures_the_default_plans_rows_and_verifies_at_8_poses(instant_plan: Path,
                                                                                         calibration_plan: Path) -> None:
     default, calibration = (json.loads(path.read_text()) for path in (instant_plan, calibration_plan))

@@ -42,6 +42,7 @@ def _twin(rec, robot, robot_path, tmp_path):
     return diag, twin, compare(twin, diag, rec, robot)
 
 
+@pytest.mark.slow
 def test_the_electric_example_s_twin_holds_the_machine(tmp_path):
     robot_path = EXAMPLES / "electric_hexapod" / "robot.toml"
     robot = load_robot(robot_path)
@@ -74,6 +75,7 @@ STUDY = [Case("single", ("thermal_expansion",), 2.0, 0), Case("unlisted", ("tran
          Case("combo", ("hooke_joint_offset", "leg_compliance"), 1.0, 400)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", STUDY, ids=lambda c: "+".join(c.effects))
 def test_a_study_recording_s_twin_holds_its_effects(case, tmp_path):
     if "measure" not in _WORKER:  # the study's D-optimal plan, designed once per test process (1.5 s)
@@ -90,6 +92,7 @@ def _hilcal(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     return hilcal_in_process(*args, env={"MPLBACKEND": "Agg"}, cwd=cwd)
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_the_twin_is_what_simulate_and_run_sim_read(tmp_path):
     example = EXAMPLES / "small_hexapod"

@@ -47,6 +47,7 @@ PLANTED = {1: (np.array([0.3, -0.5, 0.2]), np.array([1e-4, -2e-4, 5e-5])),
            2: (np.array([-0.6, 0.1, 0.4]), np.array([-3e-4, 1e-4, 2e-4]))}
 
 
+@pytest.mark.slow
 def test_the_set_ups_errors_are_found_and_the_calibration_is_as_with_one() -> None:
     clean, seen = with_stations(1, PLANTED)
     one, many = calibrate(clean, ROBOT), calibrate(seen, ROBOT)
@@ -60,6 +61,7 @@ def test_the_set_ups_errors_are_found_and_the_calibration_is_as_with_one() -> No
     assert ignored.after.position_mm.rms > 20 * one.after.position_mm.rms
 
 
+@pytest.mark.slow
 def test_the_station_column_must_hold_station_numbers(tmp_path) -> None:
     from hilcal.recording import RecordingError, read_recording, write_recording
 
@@ -78,6 +80,7 @@ def test_the_station_column_must_hold_station_numbers(tmp_path) -> None:
         read_recording(path, ROBOT)
 
 
+@pytest.mark.slow
 def test_the_rank_report_counts_what_the_stations_take() -> None:
     """Three interleaved stations of 10-11 poses: their frames take six equations each and leave the geometry's
     rank; the report says how many stations it counted."""

@@ -61,6 +61,7 @@ def test_a_dead_transducer_follows_no_leg():
     assert wiring.dead == (3,) and "follow(s) no leg" in wiring.sentence()
 
 
+@pytest.mark.slow
 def test_diagnose_names_the_wiring_first_and_still_finds_the_scale_fault():
     robot, rec = _example("electric_hexapod")
     wired = rec.legs_mm[:, [0, 2, 1, 3, 4, 5]].copy()

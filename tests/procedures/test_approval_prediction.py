@@ -4,6 +4,7 @@ parameter covariance carried to the workspace, never the model against itself (z
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from hilcal.calibration import calibrate
 from hilcal.compensation import ControllerGeometry, compensate
@@ -15,6 +16,7 @@ from procedures.cli.simulated_recording import simulate_recording
 from sim_devices.rig.config import RigConfig, load_errors
 
 
+@pytest.mark.slow
 def test_approval_shows_the_held_out_prediction_and_the_parameter_uncertainty(robot: Robot) -> None:
     config = RigConfig(seed=2, errors=load_errors("table2", robot), cmm_noise_mm=0.005)
     measure = design.factorial_exchange(robot, 32, np.random.default_rng(2)).poses
@@ -36,6 +38,7 @@ def test_approval_shows_the_held_out_prediction_and_the_parameter_uncertainty(ro
     assert f"worst pose {spread['max_position_mm']:.4f} mm" in lines and "0.0000 mm" not in lines
 
 
+@pytest.mark.slow
 def test_approval_says_when_the_model_is_incomplete(robot: Robot) -> None:
     """A transducer gain error the geometry cannot hold: the parameter uncertainty carries the misfit and the approval
     says the model is incomplete (terminal and panel data); the complete recording of the test above says nothing."""

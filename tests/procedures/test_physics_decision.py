@@ -69,6 +69,7 @@ def test_physics_off_refuses_the_absorbed_fault(fault, robot: Robot) -> None:
     assert d.block is None and any("exceeds the plausible" in p for p in d.problems) and d.diagnosis is None
 
 
+@pytest.mark.slow
 def test_nothing_to_find_leaves_the_block_as_it_is(robot: Robot) -> None:
     rec, outcome = recording(robot, {}, 6)
     d = decide(rec, robot, outcome, info(robot, compensation=True, force_reading=True), physics=True)
@@ -77,6 +78,7 @@ def test_nothing_to_find_leaves_the_block_as_it_is(robot: Robot) -> None:
     assert d.corrects[0].startswith("Nothing beyond the geometry")
 
 
+@pytest.mark.slow
 def test_joints_far_off_that_the_held_out_poses_vouch_for_are_named_and_uploaded(robot: Robot) -> None:
     """Assembly errors N(0, 5 mm) put some joints beyond the ±10 mm bound; the model holding them predicts the
     held-out poses to the noise, so the machine is built that way: a gross assembly fault, named, not refused."""

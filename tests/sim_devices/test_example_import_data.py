@@ -22,6 +22,7 @@ def regenerated(tmp_path_factory):
     return out, {name: make.make(name, out / name) for name in CASES}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(CASES))
 def test_committed_files_are_what_the_generator_writes(regenerated, name):
     out, examples = regenerated

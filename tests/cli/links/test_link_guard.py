@@ -14,6 +14,8 @@ import pytest
 from tests.cli.links.link_support import gap_log, journal_rows, late_commands, run_hilcal, sim_config
 from tests.cli.sim_speed import plan_rows
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.mark.timeout(900)
 def test_short_gaps_are_ridden_through(tmp_path, small_plan):

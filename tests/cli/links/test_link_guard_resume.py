@@ -11,6 +11,8 @@ import pytest
 from tests.cli.links.link_support import gap_log, journal_rows, late_commands, run_hilcal, sim_config
 from tests.cli.sim_speed import plan_rows
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.mark.timeout(900)
 def test_a_long_gap_ends_the_run_and_the_printed_command_resumes_it(tmp_path, small_plan):

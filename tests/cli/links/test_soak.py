@@ -28,7 +28,7 @@ FAULTS = {"modbus_drops": (1, "modbus", "A"),  # the connection drops at the upl
           "cmm_faults": (3, "cmm", "B")}
 """condition: (seed, the link it faults, the operator's name in the records)."""
 
-pytestmark = pytest.mark.timeout(900)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
 
 @pytest.fixture(scope="module")

@@ -30,7 +30,7 @@ from sim_devices.simulator import published_alignment
 from tests.cli.others.rig_support import RigView
 from tests.drivers.controller.canopen_peer import ACME_EDS, UM, AcmePeer
 
-pytestmark = [pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 STATION = Path(__file__).parents[2] / "drivers" / "controller" / "acme_lx200_station.toml"
 _n = itertools.count()
 

@@ -206,6 +206,7 @@ def blind_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
         cmm.close()
 
 
+@pytest.mark.slow
 def test_a_whole_run_on_the_two_devices_completes_and_corrects_the_machine(blind_run) -> None:
     result = blind_run["result"]
     assert result.exit_code == 0, result.output
@@ -223,6 +224,7 @@ def test_a_whole_run_on_the_two_devices_completes_and_corrects_the_machine(blind
         held[:, 0:3], np.float32(uploaded["b_mm"])) and np.array_equal(held[:, 6], np.float32(uploaded["l0_mm"]))
 
 
+@pytest.mark.slow
 def test_the_cmm_session_is_clean_by_the_servers_own_reading_of_the_standard(blind_run) -> None:
     """The server answers with an error line whatever it finds against 1.4.3; the run's session has none, asked the
     stylus radius of the CMM (6.3.13) and ended its session."""

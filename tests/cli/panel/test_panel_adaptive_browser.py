@@ -27,7 +27,7 @@ from tests.cli.sim_speed import INSTANT_SIM, instant_timing
 
 CMM_PACE = 1 / 60
 
-pytestmark = pytest.mark.timeout(480)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(480)]
 FIRST_PREDICTION_S = 300
 """The bound on the wait for the first live prediction: the measure rows before it (the repeats, then rows until every
 parameter is identifiable) each take a decision's CPU time, which a loaded 2-core machine running three test workers

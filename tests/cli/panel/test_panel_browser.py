@@ -17,6 +17,8 @@ from tests.cli.browser_support import chromium, free_port, require_chromium, tex
 from tests.cli.panel.panel_support import collect_latency, journal_rows, start_panel_run, stop
 from tests.cli.sim_speed import INSTANT_SIM
 
+pytestmark = pytest.mark.slow
+
 SCALE_FAULT = """
 [rig.effects.sensor_scale]
 enabled = true

@@ -12,7 +12,7 @@ from procedures.panel.server import PanelServer
 from procedures.records import Records
 from tests.cli.browser_support import chromium, text, wait_for
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 
 def test_choosing_a_machine_shows_its_runs_and_drift(pg_url):

@@ -17,6 +17,8 @@ from tests.cli.browser_support import chromium, free_port, require_chromium, tex
 from tests.cli.panel.panel_support import collect_latency, done_count, journal_rows, page_view, start_panel_run, stop
 from tests.cli.sim_speed import plan_rows
 
+pytestmark = pytest.mark.slow
+
 SIM = """
 [controller]
 time_scale = 100000.0

@@ -51,6 +51,7 @@ def strict(tmp_path_factory: pytest.TempPathFactory, small_plan: Path) -> tuple[
     return tmp, done
 
 
+@pytest.mark.slow
 def test_accepted_run_writes_the_certificate_and_its_pdf(accepted: tuple[Path, subprocess.CompletedProcess]) -> None:
     tmp, done = accepted
     assert done.returncode == 0, done.stdout + done.stderr
@@ -83,6 +84,7 @@ def test_accepted_run_writes_the_certificate_and_its_pdf(accepted: tuple[Path, s
     assert len(PdfReader(run / "certificate.pdf").pages) <= 2
 
 
+@pytest.mark.slow
 def test_records_and_history_show_the_verdict(accepted: tuple[Path, subprocess.CompletedProcess]) -> None:
     tmp, _ = accepted
     report = json.loads((tmp / "run" / "report.json").read_text())
@@ -98,6 +100,7 @@ def test_records_and_history_show_the_verdict(accepted: tuple[Path, subprocess.C
     assert "sign-off: pass" in history.stdout and report["certificate"]["number"] in history.stdout
 
 
+@pytest.mark.slow
 def test_the_simulated_station_states_its_cmm_and_example_limits(accepted: tuple[Path, subprocess.CompletedProcess]
                                                                  ) -> None:
     """Without a station file the certificate has a verdict with uncertainties: the simulator's CMM statement
@@ -118,6 +121,7 @@ def test_the_simulated_station_states_its_cmm_and_example_limits(accepted: tuple
     assert all(before[check["key"]] > check["limit"] for check in report["certificate"]["limits"])
 
 
+@pytest.mark.slow
 def test_the_run_ends_with_its_summary(accepted: tuple[Path, subprocess.CompletedProcess]) -> None:
     """The last thing printed: the verification poses before and after (± U) as report.json has them, what was
     uploaded, what the physics step found, the verdict and where the report and certificate are."""
@@ -147,6 +151,7 @@ def test_the_run_ends_with_its_summary(accepted: tuple[Path, subprocess.Complete
 
 
 
+@pytest.mark.slow
 def test_every_view_tells_the_same_upload_story(accepted: tuple[Path, subprocess.CompletedProcess]) -> None:
     """The run commits, then saves as a separate step, each with its own record: the commit's record says saved
     false, the save's says saved true. report.html, the certificate and the terminal say the same facts in words
@@ -171,6 +176,7 @@ def test_every_view_tells_the_same_upload_story(accepted: tuple[Path, subprocess
     assert any(line.startswith("committed and saved to non-volatile memory; read back: matches (sha256 ")
                for line in summary), "the terminal's summary"
 
+@pytest.mark.slow
 def test_a_limit_the_demo_machine_cannot_meet_fails(strict: tuple[Path, subprocess.CompletedProcess]) -> None:
     tmp, done = strict
     assert done.returncode == 4, done.stdout + done.stderr
@@ -186,6 +192,7 @@ def test_a_limit_the_demo_machine_cannot_meet_fails(strict: tuple[Path, subproce
             "after calibration fail") in summary
 
 
+@pytest.mark.slow
 def test_certificate_command_regenerates_both_files(accepted: tuple[Path, subprocess.CompletedProcess],
                                                     tmp_path: Path) -> None:
     run = accepted[0] / "run"
@@ -200,6 +207,7 @@ def test_certificate_command_regenerates_both_files(accepted: tuple[Path, subpro
     assert missing.exit_code == 2 and "report.json" in missing.output
 
 
+@pytest.mark.slow
 def test_the_certificate_opens_in_headless_chromium(accepted: tuple[Path, subprocess.CompletedProcess]) -> None:
     require_chromium()
     run = accepted[0] / "run"
@@ -217,6 +225,7 @@ def test_the_certificate_opens_in_headless_chromium(accepted: tuple[Path, subpro
         assert any(h.endswith("certificate.pdf") for h in links) and any(h.endswith("certificate.html") for h in links)
 
 
+@pytest.mark.slow
 def test_design_prints_the_iso_poses_and_the_test_time(tmp_path: Path) -> None:
     result = CliRunner().invoke(app, ["design", "--acceptance", "iso9283", "--cycles", "4"])
     assert result.exit_code == 0, result.output
@@ -226,6 +235,7 @@ def test_design_prints_the_iso_poses_and_the_test_time(tmp_path: Path) -> None:
     assert "20 measurements" in result.output and "P1, P5, P4, P3, P2" in result.output
 
 
+@pytest.mark.slow
 def test_the_cmm_conversation_is_kept_and_speaks_the_standard(accepted: tuple[Path, subprocess.CompletedProcess]
                                                               ) -> None:
     """instrument_transcript.txt holds every line sent and received, `<ISO time> > line` / `<ISO time> < line`; every

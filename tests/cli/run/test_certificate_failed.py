@@ -18,7 +18,7 @@ from hilcal.robot import Robot, default_robot
 from tests.cli.run.certificate_support import OPERATOR, REPEATABILITY_MM, STATION, hilcal, pdf_text
 from tests.cli.sim_speed import INSTANT_SIM
 
-pytestmark = pytest.mark.timeout(420)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
 
 
 @pytest.fixture(scope="module")

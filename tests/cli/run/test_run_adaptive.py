@@ -22,7 +22,7 @@ from procedures.plan import load_plan
 from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import INSTANT_SIM, instant_timing
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
 PHYSICS = """
 [rig.effects.sensor_scale]

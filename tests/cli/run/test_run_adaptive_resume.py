@@ -23,7 +23,7 @@ import pytest
 
 from tests.cli.sim_speed import INSTANT_SIM, instant_timing
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
 
 def _journal(path: Path) -> tuple[list[list[float]], dict | None, str | None]:

@@ -46,6 +46,7 @@ def _details(out: Path) -> list[dict]:
         return [json.loads(d) for (d,) in db.execute("select detail_json from measurements order by seq")]
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_a_4_percent_gradient_with_3_mm_assembly_errors_is_measured_without_a_collision(tmp_path, calibration_plan):
     errors = _errors_file(tmp_path / "errors.toml", 3.0, seed=1)
@@ -69,6 +70,7 @@ enabled = true
     assert report["verification"]["after"]["rms_position_mm"] < 0.01
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(120)
 def test_a_dead_transducer_stops_the_run_naming_the_leg_at_the_first_move(tmp_path, calibration_plan):
     done, out = _run(tmp_path, "", calibration_plan, controller="dead_transducer_legs = [4]\n")

@@ -42,6 +42,7 @@ def _refused(args: list[str], out: Path) -> str:
     return " ".join(result.output.split())
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_the_simulators_robot_is_the_runs_and_stays_so_on_resume(tmp_path):
     config = _twin(tmp_path / "twin")

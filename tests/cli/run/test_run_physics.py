@@ -20,7 +20,7 @@ from procedures.records import Records
 from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import INSTANT_SIM
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
 RIG = """
 [rig]

@@ -29,6 +29,8 @@ from procedures.station import save_station, station_from_channels
 from sim_devices.launcher import spawn_sim_subprocess, stop_sim_subprocess
 from tests.cli.sim_speed import INSTANT_SIM, plan_rows
 
+pytestmark = pytest.mark.slow
+
 SIM_CONFIG = INSTANT_SIM + """
 [controller.modbus_faults]
 response_delay_s = 0.03

@@ -25,7 +25,7 @@ import pytest
 
 from procedures.journal import Journal
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
 ROWS, COLUMNS = 40, 120
 SIM = """

@@ -66,6 +66,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory, instant_plan: Path) -> dict[s
     return {"physics": (done.returncode, done.stdout + done.stderr, tmp / "physics")}
 
 
+@pytest.mark.slow
 def test_the_tracker_run_verifies_what_its_diagnosis_predicts(runs, instant_plan: Path) -> None:
     code, stdout, run = runs["physics"]
     assert code == 0, stdout
@@ -90,6 +91,7 @@ def test_the_tracker_run_verifies_what_its_diagnosis_predicts(runs, instant_plan
     assert asked[0].startswith("Set the reflector (RRR 1.5in) in the 4 platform nests and on the 4 base monuments")
 
 
+@pytest.mark.slow
 def test_the_certificate_states_the_trackers_mpe_at_its_targets_distances(runs) -> None:
     code, stdout, run = runs["physics"]
     assert code == 0, stdout
@@ -112,6 +114,7 @@ def test_the_certificate_states_the_trackers_mpe_at_its_targets_distances(runs) 
     assert report["certificate"]["verdict"] == "pass"
 
 
+@pytest.mark.slow
 def test_concealed_physics_reaches_the_controller_as_with_the_cmm(runs) -> None:
     code, stdout, run = runs["physics"]
     assert code == 0, stdout
@@ -132,6 +135,7 @@ def test_concealed_physics_reaches_the_controller_as_with_the_cmm(runs) -> None:
     assert report["upload"]["record"]["compensation_readback_match"] is True
 
 
+@pytest.mark.slow
 def test_a_tracker_that_hangs_stops_the_run_and_the_resume_completes_it(tmp_path, small_plan) -> None:
     """The tracker answers nothing from its 201st command on (a few poses into the measure phase): the driver's new
     connections and the link guard's retries do not bring it back, so the run stops with the tracker's reason; the

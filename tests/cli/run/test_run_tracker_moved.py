@@ -113,6 +113,7 @@ def _turn_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees((rb * ra.inv()).magnitude()))
 
 
+@pytest.mark.slow
 def test_the_run_with_a_moved_tracker_verifies_what_its_diagnosis_predicts(runs) -> None:
     code, stdout, run = runs["moved"]
     assert code == 0, stdout
@@ -128,6 +129,7 @@ def test_the_run_with_a_moved_tracker_verifies_what_its_diagnosis_predicts(runs)
     assert "station" not in (run / "recording.csv").read_text().splitlines()[0].split(",")
 
 
+@pytest.mark.slow
 def test_the_journal_counts_the_stations_where_the_simulator_moved_the_tracker(runs, instant_plan: Path) -> None:
     code, stdout, run = runs["moved"]
     assert code == 0, stdout
@@ -157,6 +159,7 @@ def test_the_journal_counts_the_stations_where_the_simulator_moved_the_tracker(r
     assert "Instrument stations" in (run / "report.html").read_text()
 
 
+@pytest.mark.slow
 def test_a_move_beyond_the_searches_stops_the_run_and_the_resume_completes_it(runs, calibration_plan: Path) -> None:
     code, stdout, run = runs["too_far"]
     assert code == 3, stdout
@@ -184,6 +187,7 @@ def test_a_move_beyond_the_searches_stops_the_run_and_the_resume_completes_it(ru
     assert report["stations"]["moves"][0]["after_pose"] == _pose_name(TOO_FAR_AFTER, calibration_plan)
 
 
+@pytest.mark.slow
 def test_free_station_frames_in_the_fit_would_find_nothing_to_correct(runs, instant_plan: Path, tmp_path: Path
                                                                       ) -> None:
     """Why the run writes no station column: its rows are registered on the monuments, so a free frame per station

@@ -14,6 +14,8 @@ import pytest
 from tests.cli.in_process import hilcal_in_process
 from tests.cli.sim_speed import DEVICES_INSTANT
 
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[3]
 ROBOT = ROOT / "examples" / "hexapod_stroke320.toml"
 

@@ -99,6 +99,7 @@ def test_the_electric_example_round_trips_to_a_micrometre(tmp_path):
     _check_round_trip(robot, read_recording(EXAMPLE / "recording.csv", robot), tmp_path)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["cyclic_stroke_error", "hooke_joint_offset"])
 def test_unexplained_shapes_round_trip_to_a_micrometre(robot, name, tmp_path):
     plan = default_design(32, 0)

@@ -52,6 +52,7 @@ def test_out_of_library_physics_is_unexplained_located_and_modelled(robot, plan,
     assert diag.shapes and {s.group.variable for s in diag.shapes} <= VARIABLE_OF[name]
 
 
+@pytest.mark.slow
 def test_cyclic_error_report_exports_a_correction_table(robot, plan, tmp_path):
     rec, _ = _record(robot, plan, "cyclic_stroke_error")
     path = tmp_path / "rec.csv"

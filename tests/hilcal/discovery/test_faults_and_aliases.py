@@ -39,6 +39,7 @@ def example():
     return robot, rec, diagnose(rec, robot)
 
 
+@pytest.mark.slow
 def test_a_mis_set_ratio_is_named_as_a_fault_on_its_leg_with_what_to_check(example):
     _, _, diag = example
     assert diag.effect == "sensor_scale"

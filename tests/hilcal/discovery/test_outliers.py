@@ -21,6 +21,7 @@ def example():
     return robot, read_recording(EXAMPLE / "recording.csv", robot)
 
 
+@pytest.mark.slow
 def test_a_gross_error_is_left_out_and_the_answer_holds(example):
     robot, rec = example
     meas = rec.meas.copy()
@@ -35,6 +36,7 @@ def test_a_gross_error_is_left_out_and_the_answer_holds(example):
     assert diag.after is not None and diag.after.position_mm.rms < 0.005
 
 
+@pytest.mark.slow
 def test_a_clean_recording_loses_no_row(example):
     robot, rec = example
     diag = diagnose(rec, robot)

@@ -67,6 +67,7 @@ def _noisy(world: dict, seed: int, readings: Readings):
     return rec
 
 
+@pytest.mark.slow
 def test_readings_noisier_than_the_instrument_are_found_and_said(world) -> None:
     """Readings with 3 µm of noise on a 1 µm CMM (the readings are most of the noise): the pose measured four times
     shows them, the complete model's residual sets their level, and the JSON and the words say the parts and their
@@ -85,6 +86,7 @@ def test_readings_noisier_than_the_instrument_are_found_and_said(world) -> None:
     assert f"leg readings' {1000 * carried['leg_reading_sigma_mm']:.2f} µm each" in carried["sentence"]
 
 
+@pytest.mark.slow
 def test_without_repeats_the_readings_floor_is_their_step(world) -> None:
     """Without a pose measured again in a row the yardstick's readings part is their step's alone, and says so."""
     rec = _noisy(world, 6101, Readings(0.5, 0.5, 1.0, 0.005, 0))

@@ -41,6 +41,7 @@ def _two_sessions(effects: dict, seed: int):
     return dataclasses.replace(rec, meas=meas, extra={**rec.extra, "station": station}), station == 1
 
 
+@pytest.mark.slow
 def test_a_fault_is_found_through_two_set_ups_and_nothing_else() -> None:
     rec, _ = _two_sessions({"sensor_scale": {"enabled": True, "gain_error_ppm": [3000.0, 0, 0, 0, 0, 0]}}, 4)
     diag = diagnose(rec, ROBOT)
@@ -55,6 +56,7 @@ def test_a_fault_is_found_through_two_set_ups_and_nothing_else() -> None:
     assert ignored.after.position_mm.rms > 5 * diag.after.position_mm.rms
 
 
+@pytest.mark.slow
 def test_zero_shifts_between_set_ups_are_found_on_their_legs_only() -> None:
     rec, later = _two_sessions({}, 6)
     shift = np.array([0.0, 0.030, 0.0, 0.0, -0.030, 0.0])
@@ -74,6 +76,7 @@ def test_zero_shifts_between_set_ups_are_found_on_their_legs_only() -> None:
             assert f"leg {leg} reads" not in sentence, sentence
 
 
+@pytest.mark.slow
 def test_a_session_first_row_whose_history_is_unknown_does_not_move_the_station() -> None:
     """With a history term (joint backlash) in the model, a session's first row cannot be modelled (the direction
     of its legs' last move is unknown), so the joint fit of the stations leaves it out, as the diagnosis does: an

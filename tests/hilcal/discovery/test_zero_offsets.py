@@ -18,6 +18,7 @@ from hilcal.robot import load_robot
 EXAMPLE = Path(__file__).resolve().parents[3] / "examples" / "electric_hexapod"
 
 
+@pytest.mark.slow
 def test_a_leg_reading_2_mm_long_is_named():
     robot = load_robot(EXAMPLE / "robot.toml")
     rec = read_recording(EXAMPLE / "recording.csv", robot)

@@ -161,6 +161,7 @@ def test_align_needs_the_robot_file(tmp_path):
         import_recording([folder / "day1.csv"], load_map(folder / "map.toml"))
 
 
+@pytest.mark.slow
 def test_a_tracker_set_up_anew_each_day_gives_the_planted_zero_shifts(tmp_path, robot):
     """The logger example (re-homed on day 2: legs 2 and 4 read +12 and -9 µm off, make_examples.py) logged by a
     tracker set up again on day 2. With per_file frames each day is a station fitted with the model (the recording's

@@ -247,6 +247,7 @@ def paper_sets(robot: Robot) -> dict[str, D.Design]:
     return D.paper_pose_sets(robot, seed=2022)
 
 
+@pytest.mark.slow
 def test_one_paper_pose_set_alone_is_the_same_as_among_all_four(robot: Robot, paper_sets) -> None:
     """`hilcal identifiability` makes only the set it analyses: it must be the one the four-set call makes. Set 2 is
     the one that could differ (it draws from set 1's stream after it); sets 3 and 4 use no shared stream."""
@@ -259,6 +260,7 @@ def test_one_paper_pose_set_alone_is_the_same_as_among_all_four(robot: Robot, pa
         D.paper_pose_sets(robot, seed=2022, names=["set5"])
 
 
+@pytest.mark.slow
 def test_paper_pose_sets_are_feasible_and_better_than_random(robot: Robot, paper_sets) -> None:
     assert list(paper_sets) == [
         "set1_random32",
@@ -276,6 +278,7 @@ def test_paper_pose_sets_are_feasible_and_better_than_random(robot: Robot, paper
     assert paper_sets["set4_doptimal64"].metrics.n_poses == 64
 
 
+@pytest.mark.slow
 def test_design_report_lists_every_design(paper_sets) -> None:
     report = D.design_report(paper_sets)
     lines = report.splitlines()
