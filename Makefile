@@ -24,14 +24,17 @@ lint: venv
 	$(BIN)/ruff check .
 
 # `make test` leaves out the tests marked slow (pyproject.toml): the whole simulated calibration runs, the
-# headless-browser tests and the tests that take more than about 3.5 CPU seconds alone, together three quarters of the
-# suite's CPU time (docs/benchmarks_tests.md). `make test-slow` runs those; CI (.ci/run) runs both, as does
-# `make test-all`.
+# headless-browser tests and the tests that take more than about 3.5 CPU seconds alone (their fixtures included),
+# together about four fifths of the suite's CPU time (docs/benchmarks_tests.md). `make test-slow` runs those; CI
+# (.ci/run) runs both, as does `make test-all`.
 # Byte-compile first: with PYTHONDONTWRITEBYTECODE set (as on the machines this project is built on), every
 # process the tests start would otherwise compile the project's sources again (~0.15 s per `hilcal` start).
+# pytest may keep its assertion-rewritten test modules in __pycache__ (PYTHONDONTWRITEBYTECODE unset for it): a
+# worker then collects in 8 s instead of 17 s once a run has written them (2026-12-03; `make test-slow` after
+# `make test`, and every run after the first).
 # One BLAS thread per process: the workers and the runs they start already share the cores, and OpenBLAS's own
 # threads would only spin on them for matrices of a few hundred rows.
-PYTEST := OPENBLAS_NUM_THREADS=1 $(BIN)/pytest --dist loadfile --no-loadscope-reorder --durations=25
+PYTEST := env -u PYTHONDONTWRITEBYTECODE OPENBLAS_NUM_THREADS=1 $(BIN)/pytest --dist loadfile --no-loadscope-reorder --durations=25
 
 compile: venv
 	$(BIN)/python -m compileall -q -j0 hilcal drivers procedures sim_devices benchmarks tests >/dev/null

@@ -41,6 +41,7 @@ def _record(robot, plan, name: str):
     return simulate_with_truth(robot, config, plan, design.verification_poses(robot, 24, 0))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", UNLISTED_EFFECT_NAMES)
 def test_out_of_library_physics_is_unexplained_located_and_modelled(robot, plan, name):
     rec, _ = _record(robot, plan, name)

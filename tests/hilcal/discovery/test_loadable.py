@@ -17,7 +17,7 @@ from hilcal.robot import Robot
 from procedures.cli.simulated_recording import simulate_recording
 from sim_devices.rig.config import EffectsConfig, RigConfig, load_errors
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 
 @pytest.fixture(scope="module")

@@ -45,6 +45,7 @@ def _half_mass(robot: Robot) -> Robot:
     return Robot(robot.spec.model_copy(update={"mass": mass}))
 
 
+@pytest.mark.slow
 def test_measured_loads_overrule_a_wrong_mass_in_the_robot_file(robot: Robot) -> None:
     effect = concealed_effect_config("leg_compliance", 1.0, SEED).leg_compliance
     config = RigConfig(seed=SEED, errors=load_errors("table2", robot),

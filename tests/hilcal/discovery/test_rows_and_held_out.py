@@ -50,6 +50,7 @@ def backlash(study):
     return rec, truth, diagnose(rec, study["robot"], seed=0)
 
 
+@pytest.mark.slow
 def test_a_row_whose_history_is_unknown_is_not_an_outlier(study, backlash):
     rec, truth, diag = backlash
     assert diag.effect == "joint_backlash"
@@ -64,6 +65,7 @@ def test_a_row_whose_history_is_unknown_is_not_an_outlier(study, backlash):
     assert diag.after.position_mm.rms <= FLOOR_FACTOR * floor
 
 
+@pytest.mark.slow
 def test_leaving_rows_out_changes_no_other_row_s_regressors(study):
     rec, _ = _backlash(study)
     rec, planted = plant_outliers(rec, 1, seed=3)
@@ -99,6 +101,7 @@ def worse_on_held_out(study):
     return rec, diagnose(rec, robot, seed=seed), diagnose(rec, robot, seed=seed, include_unconfirmed=True)
 
 
+@pytest.mark.slow
 def test_a_step_that_worsens_the_held_out_poses_is_unconfirmed(worse_on_held_out):
     _, diag, _ = worse_on_held_out
     assert "leg_compliance" in diag.effects
@@ -114,6 +117,7 @@ def test_a_step_that_worsens_the_held_out_poses_is_unconfirmed(worse_on_held_out
     assert diag.to_json()["steps"][cyclic[0].index - 1]["confirmed_on_held_out"] is False
 
 
+@pytest.mark.slow
 def test_an_unconfirmed_table_is_not_exported_unless_asked(worse_on_held_out):
     _, diag, asked = worse_on_held_out
     key = diag.unconfirmed[0]
@@ -131,6 +135,7 @@ def test_an_unconfirmed_table_is_not_exported_unless_asked(worse_on_held_out):
     assert "as asked (--include-unconfirmed)" in next(s for s in asked.summary if s.startswith("Not confirmed"))
 
 
+@pytest.mark.slow
 def test_the_command_leaves_the_unconfirmed_table_out_unless_asked(worse_on_held_out, tmp_path):
     from typer.testing import CliRunner
 

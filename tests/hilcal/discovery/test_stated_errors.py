@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT / "benchmarks" / "studies"))
 import coverage_study as study  # noqa: E402
 from stated_errors.readings import Readings  # noqa: E402
 
-pytestmark = pytest.mark.timeout(600)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 SAID = "The model is incomplete"
 
 
@@ -85,7 +85,6 @@ def test_the_truth_mapping_on_recordings_without_noise(world, effects, sessions)
     assert max(abs(v) for v in z.values()) < 0.3, z
 
 
-@pytest.mark.slow
 def test_a_complete_model_is_not_padded(world) -> None:
     """One library effect, concealed over rig seeds: the stated errors are about the scatter of the estimates
     (the RMS of z near 1, not well below it) and the model is not called incomplete where its residual is within the
