@@ -66,6 +66,7 @@ def _run(work: Path, plan: Path, answers: str | None) -> subprocess.CompletedPro
                           capture_output=True, text=True, timeout=120, check=False)
 
 
+@pytest.mark.slow
 def test_an_abort_says_at_which_question_and_why(tmp_path: Path, small_plan: Path) -> None:
     for name in ("closed", "no"):
         (tmp_path / name).mkdir()

@@ -353,6 +353,7 @@ def test_hilcal_panel_serves_the_history_until_ctrl_c(tmp_path):
             proc.wait(5)
 
 
+@pytest.mark.slow
 def test_diagnosis_of_a_past_run_from_the_panel(tmp_path):
     from procedures.journal import Journal
 

@@ -74,11 +74,13 @@ def check_complete(target: str, runs: int) -> None:
     assert machines == {"paper-table1/SN-A": runs // 2, "paper-table1/SN-B": runs // 2}
 
 
+@pytest.mark.slow
 def test_two_processes_writing_50_runs_each_into_postgresql_store_100_complete_records(pg_url):
     two_writers_at_once(pg_url)
     check_complete(pg_url, 2 * RUNS_PER_WRITER)
 
 
+@pytest.mark.slow
 def test_two_processes_writing_50_runs_each_into_one_sqlite_file_store_100_complete_records(tmp_path):
     target = str(tmp_path / "records.sqlite")
     two_writers_at_once(target)

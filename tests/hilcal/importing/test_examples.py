@@ -30,6 +30,7 @@ def test_the_import_is_the_simulators_recording(example):
     assert_same_recording(result.recording, direct, 1e-3, 1e-6)
 
 
+@pytest.mark.slow
 def test_diagnose_gives_the_same_answer(example):
     name, robot, result, direct = example
     imported, reference = diagnose(result.recording, robot), diagnose(direct, robot)

@@ -98,6 +98,7 @@ def test_an_unaligned_tracker_log_is_refused_with_a_hint(tmp_path, robot):
                          hold_out=parse_hold_out("file:day2.csv"))
 
 
+@pytest.mark.slow
 def test_aligned_tracker_log_gives_the_same_diagnosis(tmp_path, robot):
     folder = _logger_in_tracker_frame(tmp_path / "logger")
     (folder / "map.toml").write_text((folder / "map.toml").read_text() + '\n[frame]\nalign = "shared"\n')

@@ -144,6 +144,7 @@ def test_the_forecast_after_the_repeats_is_the_run(run):
     assert before.best_s <= state.elapsed_s + 1e-6 and before.worst_s == problem.settings.max_measure_s
 
 
+@pytest.mark.slow
 def test_a_memo_of_the_choices_changes_no_decision_and_no_forecast(run):
     problem, _state, decisions, rows = run
     memo = ChoiceMemo()
