@@ -24,7 +24,6 @@ Targets: `make test` <= 5 min on 2 cores (issues 22, 38-41), and pytest's own wa
 machine 1.6x slower, with margin).
 """
 
-
 from __future__ import annotations
 
 import argparse
