@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 # One pytest worker more than cores: many tests wait on simulated devices, subprocesses or a browser in real time, so
-# a third worker keeps both cores busy (`make test` on 2 cores: 173 s with 3 workers, 210 s with 2, 2026-12-03).
+# a third worker keeps both cores busy (`pytest -m "not slow"` on 2 cores, back to back on 2026-12-03: 173 s with -n 3, 210 s with -n 2).
 WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))
 
 .PHONY: venv demo test test-slow test-all compile bench screenshot lint clean
@@ -30,7 +30,7 @@ lint: venv
 # Byte-compile first: with PYTHONDONTWRITEBYTECODE set (as on the machines this project is built on), every
 # process the tests start would otherwise compile the project's sources again (~0.15 s per `hilcal` start).
 # pytest may keep its assertion-rewritten test modules in __pycache__ (PYTHONDONTWRITEBYTECODE unset for it): a
-# worker then collects in 8 s instead of 17 s once a run has written them (2026-12-03; `make test-slow` after
+# worker then collects in 8 s instead of 17 s once a run has written them (`pytest --co -p no:xdist`, 2026-12-03; `make test-slow` after
 # `make test`, and every run after the first).
 # One BLAS thread per process: the workers and the runs they start already share the cores, and OpenBLAS's own
 # threads would only spin on them for matrices of a few hundred rows.
