@@ -19,17 +19,23 @@ of J), e what the model does not explain at the measured rows. Two parts:
   for a stated yardstick), whose quantile, unlike a normal approximation, holds for a yardstick of few degrees of
   freedom (the repeats of one pose). A model that needed
   shapes no library names (``shapes``) is incomplete too. The misfit is then treated as a discrepancy of the legs'
-  lengths, correlated over the workspace: per leg i an independent Gaussian process with variance s_i² and kernel
-  ⅓ (exp(-(x_i - x_i')² / 2ℓ²) + exp(-|x - x'|² / 2ℓ²) + [same session]), x the six reported lengths, each over its
+  lengths, correlated over the workspace: per leg i an independent Gaussian process with variance s_i² and kernel ⅓
+  (exp(-(x_i - x_i')² / 2ℓ²) + exp(-|x - x'|² / 2ℓ²) + [same session]), x the six reported lengths, each over its
   recorded range (ℓ in that unit): smooth over the leg's own stroke (a transducer, a screw), smooth over the pose
-  (loads, joint angles) and constant within a session (a zero that moved). It is carried through the estimator as
-  G Σ Gᵀ with Σ_nm = Σ_i s_i² K_i(n, m) D_n e_i e_iᵀ D_mᵀ (D: d pose residual / d leg length), not as white noise, so
-  the part the fit absorbs (and which therefore never shows in the residual) is counted too. The variances are the
-  measured excess: per leg, the residual's sum of squares (in leg lengths) beyond the noise's share is matched by the
-  discrepancy's share, non-negative least squares over the legs; ℓ is the one of (0.25, 0.5, 1, 2) under which the
-  legs' residual series are most likely. An unexplained shape c on a leg may also scale with the leg's length, as
-  thermal growth and strain do, which a shape in one variable does not know: c (L - L̄) / L̄ enters as a nuisance
-  column with a unit Gaussian prior, g gᵀ with g = G times that column.
+  (loads, joint angles) and constant within a session (a zero that moved, a leg warmer in one session). Where the fit
+  takes up every leg's constant in every session whole (leg offsets, per-session zero shifts), such a discrepancy
+  never reaches the residual and nothing measured sizes it: it is then carried only on the legs whose length the model
+  found drifting (``drifting``: a shape in time or temperature, whose level between sessions no term pins down; a zero
+  shift fitted there may be the drift's), not on the others, whose shifts it would only pad. It is carried through the
+  estimator as G Σ Gᵀ with Σ_nm = Σ_i s_i² K_i(n, m) D_n e_i e_iᵀ D_mᵀ (D: d pose residual / d leg length), not as
+  white noise, so the part the fit absorbs (and which therefore never shows in the residual) is counted too. The
+  variances are the measured excess: per leg, the residual's sum of squares (in leg lengths) beyond the noise's share
+  is matched by the discrepancy's share, non-negative least squares over the legs; ℓ is the one of (0.25, 0.5, 1, 2)
+  under which the legs' residual series are most likely. An unexplained shape c on a leg may also scale with the leg's
+  length, as thermal growth and strain do, which a shape in one variable does not know: c (L - L̄) / L̄ enters as a
+  nuisance column with a unit Gaussian prior, g gᵀ with g = G times that column; only for shapes whose physics grows
+  with the length (``length_scaled``: in load, temperature or time), not for those in the leg's own stroke (a function
+  of its length already), its joint angles (joint geometry) or its last move (hysteresis).
 The result says whether the model is incomplete and by how much the errors grew (``Misfit``).
 """
 
@@ -178,15 +184,30 @@ def _blocks(A: np.ndarray, S: np.ndarray) -> np.ndarray:
     return np.einsum("knj,nji->kni", A.reshape(A.shape[0], n, 6), S).reshape(A.shape)
 
 
-def _kernels(legs_mm: np.ndarray, session: np.ndarray, length: float) -> np.ndarray:
+def _kernels(legs_mm: np.ndarray, session: np.ndarray, length: float, with_session: np.ndarray) -> np.ndarray:
     """(6, N, N) per leg: the mean of three unit kernels, squared exponentials of length `length` in the leg's own
-    reported length and in the pose (all six reported lengths), each over its recorded range, and the same session."""
+    reported length and in the pose (all six reported lengths), each over its recorded range, and the same session
+    (legs not `with_session`: the mean of the first two)."""
     span = np.maximum(np.ptp(legs_mm, axis=0), 1e-9)
     x = (legs_mm - legs_mm.mean(axis=0)) / span
-    own = (x.T[:, :, None] - x.T[:, None, :]) ** 2
-    pose = np.sum((x[:, None, :] - x[None, :, :]) ** 2, axis=2)
+    own = np.exp(-(x.T[:, :, None] - x.T[:, None, :]) ** 2 / (2.0 * length**2))
+    pose = np.exp(-np.sum((x[:, None, :] - x[None, :, :]) ** 2, axis=2) / (2.0 * length**2))
     same = (session[:, None] == session[None, :]).astype(float)
-    return (np.exp(-own / (2.0 * length**2)) + (np.exp(-pose / (2.0 * length**2)) + same)[None]) / 3.0
+    flags = np.asarray(with_session, dtype=bool)[:, None, None]
+    return np.where(flags, (own + (pose + same)[None]) / 3.0, (own + pose[None]) / 2.0)
+
+
+def _absorbs_sessions(R: np.ndarray, D: np.ndarray, session: np.ndarray) -> bool:
+    """Whether the fit takes up a constant of every leg in every session whole (leg offsets, and per-session zero
+    shifts where there are more sessions): the residual never shows such a discrepancy, so the data cannot size it."""
+    n = D.shape[0]
+    for s in np.unique(session):
+        V = np.zeros((n, 6, 6))
+        V[session == s] = D[session == s]
+        V = V.reshape(6 * n, 6)
+        if np.linalg.norm(R @ V) > 1e-6 * np.linalg.norm(V):
+            return False
+    return True
 
 
 def _subspaces(base: np.ndarray) -> list[np.ndarray]:
@@ -262,7 +283,8 @@ def honest_covariance(
     J: np.ndarray, r: np.ndarray, noise: np.ndarray, leg_map: np.ndarray, legs_mm: np.ndarray,
     session: np.ndarray | None = None, *, prior: np.ndarray | None = None, frames: StationFrames | None = None,
     noise_dof: float | None = None, shapes: Sequence[np.ndarray] = (), stated: Sequence[int] | None = None,
-    parts: NoiseParts | None = None,
+    parts: NoiseParts | None = None, length_scaled: Sequence[bool] | None = None,
+    drifting: Sequence[bool] | None = None,
 ) -> tuple[np.ndarray, Misfit]:
     """The parameters' covariance with the measured noise and the model's misfit (module docstring).
 
@@ -272,7 +294,9 @@ def honest_covariance(
     (N, 6) the reported lengths; session (N,) the rows' sessions; prior (k, p) prior rows of the fit; noise_dof the
     yardstick's degrees of freedom (None: stated, exact); shapes (N, 6) leg corrections of the unexplained shapes;
     stated: the parameters whose inflation is reported (default all); parts: the yardstick in its parts (then
-    `noise` is their sum, and a complete model's residual sets the noise's level)."""
+    `noise` is their sum, and a complete model's residual sets the noise's level); length_scaled: per shape, whether
+    it may scale with its leg's length (default all); drifting (6,): the legs with a shape in time or temperature
+    (None: every leg carries the session part)."""
     J, r, S, D = (np.asarray(a, dtype=float) for a in (J, r, noise, leg_map))
     L = np.asarray(legs_mm, dtype=float)
     n, m, p = L.shape[0], r.size, J.shape[1]
@@ -301,7 +325,10 @@ def honest_covariance(
     dof = max(m - rank - (0 if frames is None else frames.n_params), 1)
     ratio = float(np.sqrt(observed / max(expected, 1e-300)))
     tolerance = float(np.sqrt(variance_ratio_quantile(dof, noise_dof)))
-    shapes = [np.asarray(c, dtype=float) for c in shapes if np.ptp(np.asarray(c), axis=0).max() > MIN_SHAPE_MM]
+    scaled = [True] * len(shapes) if length_scaled is None else list(length_scaled)
+    kept = [(np.asarray(c, dtype=float), f) for c, f in zip(shapes, scaled, strict=True)
+            if np.ptp(np.asarray(c), axis=0).max() > MIN_SHAPE_MM]
+    shapes = [c for c, _ in kept]
     stated = list(range(p)) if stated is None else list(stated)
 
     def used(factor: float, variance: float, level: str) -> NoiseUsed | None:
@@ -337,8 +364,11 @@ def honest_covariance(
     excess = np.maximum(np.sum(rho**2, axis=1) - np.einsum("iaa->i", base), 0.0)
     spaces = _subspaces(base)
     best: tuple[float, float, np.ndarray, np.ndarray] | None = None
+    with_session = np.ones(6, dtype=bool)
+    if drifting is not None and _absorbs_sessions(R, D, session):
+        with_session = np.asarray(drifting, dtype=bool)
     for length in LENGTHS:
-        K = _kernels(L, session, length)
+        K = _kernels(L, session, length, with_session)
         misfit_parts = np.einsum("jiak,jkl,jibl->ijab", W, K, W, optimize=True)
         s2 = _nnls(np.einsum("ijaa->ij", misfit_parts), excess)
         score = _log_likelihood(rho, base, misfit_parts, s2, spaces)
@@ -348,7 +378,7 @@ def honest_covariance(
     _, length, s2, K = best
     c_misfit = np.einsum("j,jpk,jkl,jql->pq", s2, GA, K, GA, optimize=True)
     span = L.mean(axis=0)
-    for c in shapes:
+    for c in (c for c, f in kept if f):
         for i in np.flatnonzero(np.ptp(c, axis=0) > MIN_SHAPE_MM):
             g = GA[i] @ (c[:, i] * (L[:, i] - span[i]) / span[i])
             c_misfit += np.outer(g, g)

@@ -39,6 +39,12 @@ CACHED = 8
 """Entries per cache of a Problem: a search step asks again only for the last few models."""
 MANY_GROUPS = 50
 """A candidate list this long is the search's (its regressors are kept as one block, `Problem.phi_columns`)."""
+LENGTH_PROPORTIONAL = ("axial_force", "temperature", "time", "time_lag")
+"""Generic variables whose physics grows with the leg's length (strain under load, thermal growth): their shapes
+carry a possible scaling with it (`hilcal.misfit`). A shape in the stroke is a function of the length already; one in
+the joint angles (joint geometry) or the last move (hysteresis) does not grow with it."""
+DRIFT = ("time", "time_lag", "temperature")
+"""Generic variables of a leg whose length drifts: its level between sessions is not pinned (`hilcal.misfit`)."""
 
 
 @dataclasses.dataclass
@@ -341,10 +347,14 @@ def final_covariance(p: Problem, final: IdentificationResult, groups: list[TermG
         return cluster_robust_covariance(J, r, p.mea.n), None
     raw = linearized(p, groups, final.x)[1]
     frames = None if stations is None else StationFrames.of(stations, p.mea.meas, p.length_mm, p.robot.home[:3])
-    shapes, stated, k = [], [], N_GEO
+    shapes, scaled, stated, k = [], [], [], N_GEO
+    drifting = np.zeros(6, dtype=bool)
     for g in groups:
         if g.kind == GENERIC:
             shapes.append(p.phi(g) @ final.x[k:k + g.n_params])
+            scaled.append(g.variable in LENGTH_PROPORTIONAL)
+            if g.variable in DRIFT:
+                drifting[slice(None) if g.leg is None else g.leg] = True
         else:
             stated += range(k, k + g.n_params)
         k += g.n_params
@@ -359,7 +369,7 @@ def final_covariance(p: Problem, final: IdentificationResult, groups: list[TermG
     return honest_covariance(
         J, r, noise.covariance[p.measure], leg_map, p.mea.legs_mm, p.ctx.session,
         prior=prior_rows(p, groups, shape_scale_mm, noise_mm), frames=frames, noise_dof=noise.dof, shapes=shapes,
-        stated=stated or range(N_GEO), parts=parts)
+        stated=stated or range(N_GEO), parts=parts, length_scaled=scaled, drifting=drifting)
 
 
 def temperature_factor(p: Problem, groups: list[TermGroup], x: np.ndarray, leg_map: np.ndarray

@@ -114,41 +114,50 @@ def _spline_groups(variable: str, leg: int, fit: EffectContext, knot_counts: tup
     return groups
 
 
+def period_step(fit: EffectContext) -> float:
+    """The scan's step in frequency (1/mm): a quarter of the Rayleigh resolution, coarser on long recordings; 0
+    when the strokes are too few to scan."""
+    span = float(np.min(np.ptp(fit.stroke_mm, axis=0)))
+    distinct = min(np.unique(np.round(fit.stroke_mm[:, i], 6)).size for i in range(6))
+    if span <= 0 or distinct < MIN_DISTINCT_VALUES:
+        return 0.0
+    f_min, f_max = MIN_CYCLES / span, distinct / span
+    return max(1.0 / (CYCLIC_OVERSAMPLING * span), (f_max - f_min) / MAX_PERIODS)
+
+
 def _periods(fit: EffectContext) -> np.ndarray:
     """Scanned periods (mm): from 2/3 of the stroke range (1.5 cycles; a longer 'period' is a smooth bow, which
     the splines describe) down to the mean spacing of the recorded strokes."""
-    spans = np.ptp(fit.stroke_mm, axis=0)
-    distinct = min(np.unique(np.round(fit.stroke_mm[:, i], 6)).size for i in range(6))
-    span = float(np.min(spans))
-    if span <= 0 or distinct < MIN_DISTINCT_VALUES:
+    step = period_step(fit)
+    if step <= 0:
         return np.zeros(0)
-    f_min, f_max = MIN_CYCLES / span, distinct / span
-    step = max(1.0 / (CYCLIC_OVERSAMPLING * span), (f_max - f_min) / MAX_PERIODS)
-    return 1.0 / np.arange(f_min, f_max + 1e-12, step)
+    span = float(np.min(np.ptp(fit.stroke_mm, axis=0)))
+    distinct = min(np.unique(np.round(fit.stroke_mm[:, i], 6)).size for i in range(6))
+    return 1.0 / np.arange(MIN_CYCLES / span, distinct / span + 1e-12, step)
+
+
+def cyclic_group(period_mm: float, leg: int | None, stroke_range: tuple[float, float]) -> TermGroup:
+    """sin/cos of 2 pi stroke / period on one leg (leg None: every leg, each with its own pair)."""
+    def curve(values: np.ndarray, i: int) -> np.ndarray:
+        arg = 2.0 * np.pi * np.asarray(values, dtype=float) / period_mm
+        return np.stack([np.sin(arg), np.cos(arg)], axis=-1)
+
+    def basis(c: EffectContext, i: int) -> np.ndarray:
+        return curve(c.stroke_mm[:, i], i)
+
+    who = "every leg" if leg is None else f"leg {leg + 1}"
+    return _make(
+        f"{'all' if leg is None else f'leg{leg + 1}'}:stroke_cyclic:{period_mm:.6g}mm",
+        f"{who}: periodic error in its stroke (period {period_mm:.4g} mm)",
+        f"{who}'s length error repeats every {period_mm:.4g} mm of stroke (a cyclic error, as a screw lead, "
+        "a pinion or a drum with runout gives)", "stroke_cyclic", f"period {period_mm:.4g} mm", leg, 2, basis,
+        curve, ["cyclic_sin_mm", "cyclic_cos_mm"], curve_range=stroke_range, unit="mm", period_mm=float(period_mm),
+    )
 
 
 def _cyclic_groups(fit: EffectContext) -> list[TermGroup]:
-    groups = []
-    for period in _periods(fit):
-        def curve(values: np.ndarray, i: int, period: float = period) -> np.ndarray:
-            arg = 2.0 * np.pi * np.asarray(values, dtype=float) / period
-            return np.stack([np.sin(arg), np.cos(arg)], axis=-1)
-
-        def basis(c: EffectContext, i: int, curve: Curve = curve) -> np.ndarray:
-            return curve(c.stroke_mm[:, i], i)
-
-        extra = {"curve_range": (float(np.min(fit.stroke_mm)), float(np.max(fit.stroke_mm))), "unit": "mm",
-                 "period_mm": float(period)}
-        for leg in [None, *range(6)]:
-            who = "every leg" if leg is None else f"leg {leg + 1}"
-            groups.append(_make(
-                f"{'all' if leg is None else f'leg{leg + 1}'}:stroke_cyclic:{period:.4g}mm",
-                f"{who}: periodic error in its stroke (period {period:.4g} mm)",
-                f"{who}'s length error repeats every {period:.4g} mm of stroke (a cyclic error, as a screw lead, "
-                "a pinion or a drum with runout gives)", "stroke_cyclic", f"period {period:.4g} mm", leg, 2, basis,
-                curve, ["cyclic_sin_mm", "cyclic_cos_mm"], **extra,
-            ))
-    return groups
+    stroke_range = (float(np.min(fit.stroke_mm)), float(np.max(fit.stroke_mm)))
+    return [cyclic_group(float(period), leg, stroke_range) for period in _periods(fit) for leg in [None, *range(6)]]
 
 
 def _angle_groups(fit: EffectContext, end: str) -> list[TermGroup]:
@@ -234,12 +243,17 @@ ALL_LEG_SHAPES: tuple[tuple[str, str, Callable[[np.ndarray], np.ndarray]], ...] 
 )
 """One coefficient per leg in a shape every leg shares: the unsigned, unconstrained cousins of the library (legs
 that lengthen under load, which no compliance can) and common non-linearities. A quadratic is taken about the middle
-of each leg's recorded range (`_all_leg_groups`): its curvature alone, without the slope that x² carries over a range
-from 0, which is a reading-scale error's (a bent transducer, level at both ends of its stroke, would otherwise lend
-the scale its slope: the coverage study's transducer bow read as 0.1 % scale errors, 7 standard errors off)."""
+of each leg's stroke (`_all_leg_groups`): its curvature alone, without the slope that x² carries over a range from 0,
+which is a reading-scale error's (a bent transducer, level at both ends of its stroke, would otherwise lend the scale
+its slope: the coverage study's transducer bow read as 0.1 % scale errors, 7 standard errors off). The middle is the
+one of the leg's stroke limits when the robot file gives them: a transducer's linearity error is stated against the
+line through its two ends (end-point linearity), so a bow is symmetric about the stroke's middle, not the recorded
+range's, whose offset from it would lend the scale a slope again (30 ppm per 15 mm on a 0.25 mm bow of a 1 m
+stroke)."""
 
 
-def _all_leg_groups(fit: EffectContext) -> list[TermGroup]:
+def _all_leg_groups(fit: EffectContext, stroke_limits_mm: tuple[np.ndarray, np.ndarray] | None = None
+                    ) -> list[TermGroup]:
     groups = []
     for variable, setting, shape in ALL_LEG_SHAPES:
         read = READ[variable]
@@ -248,6 +262,9 @@ def _all_leg_groups(fit: EffectContext) -> list[TermGroup]:
         if np.ptp(values) <= 0:
             continue
         middle = (values.min(axis=0) + values.max(axis=0)) / 2.0 if setting == "quadratic" else np.zeros(6)
+        if setting == "quadratic" and variable == "stroke" and stroke_limits_mm is not None:
+            middle = np.broadcast_to((np.asarray(stroke_limits_mm[0]) + np.asarray(stroke_limits_mm[1])) / 2.0,
+                                     (6,)).astype(float)
 
         def curve(x: np.ndarray, i: int, shape: Callable = shape, middle: np.ndarray = middle) -> np.ndarray:
             return shape(np.asarray(x, dtype=float) - middle[i])[..., None]
@@ -264,9 +281,12 @@ def _all_leg_groups(fit: EffectContext) -> list[TermGroup]:
     return groups
 
 
-def generic_groups(fit: EffectContext) -> list[TermGroup]:
-    """Every generic group (per leg and for all legs), bound to the fitted rows."""
-    groups = _all_leg_groups(fit) + _cyclic_groups(fit) + _angle_groups(fit, "base") + _angle_groups(fit, "platform")
+def generic_groups(fit: EffectContext, stroke_limits_mm: tuple[np.ndarray, np.ndarray] | None = None
+                   ) -> list[TermGroup]:
+    """Every generic group (per leg and for all legs), bound to the fitted rows; `stroke_limits_mm`: each leg's
+    (lowest, highest) stroke from the robot file (leg limits minus the stroke-zero length), when known."""
+    groups = (_all_leg_groups(fit, stroke_limits_mm) + _cyclic_groups(fit) + _angle_groups(fit, "base")
+              + _angle_groups(fit, "platform"))
     for leg in range(6):
         groups += _spline_groups("stroke", leg, fit, STROKE_KNOTS)
         groups += _spline_groups("axial_force", leg, fit, FORCE_KNOTS)

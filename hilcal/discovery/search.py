@@ -62,7 +62,7 @@ from hilcal.discovery.fitting import (
     unknown_terms,
     verify_accuracy,
 )
-from hilcal.discovery.generic_terms import generic_groups
+from hilcal.discovery.generic_terms import cyclic_group, generic_groups, period_step
 from hilcal.discovery.naming import named_effects
 from hilcal.discovery.noise import NoiseLevel, noise_yardstick, sphere_noise_covariance, sphere_sources
 from hilcal.discovery.physics import library_groups
@@ -76,7 +76,7 @@ from hilcal.discovery.screen import (
     unknown_rows,
     unknown_sentence,
 )
-from hilcal.discovery.selection import GroupTest, assess, choose
+from hilcal.discovery.selection import GroupTest, ModelState, assess, choose
 from hilcal.discovery.shapes import shapes_for
 from hilcal.discovery.stations import with_stations
 from hilcal.discovery.term_groups import GENERIC, LIBRARY, TermGroup, stack_phi
@@ -112,6 +112,33 @@ def _period_aliases(best: GroupTest, tests: list[GroupTest]) -> tuple[TermGroup,
         and abs(1.0 / t.group.period_mm - 1.0 / g.period_mm) > resolution
         and t.press_gain_mm >= ALIAS_GAIN * best.press_gain_mm
     )
+
+
+def _refine_period(p: Problem, state: ModelState, d_dl0: np.ndarray, group: TermGroup) -> TermGroup:
+    """The chosen cyclic group at the period that explains most within one scan step of it (least squares in the
+    frequency, the other terms held at the current model's linearization). The scan steps by a quarter of the
+    frequency resolution; a period off by part of a step leaves a beat that grows along the stroke, which a scale
+    or a bow then takes up."""
+    from scipy.optimize import minimize_scalar
+
+    step = period_step(p.ctx)
+    if group.period_mm is None or group.curve_range is None or step <= 0:
+        return group
+    whitened_d = np.einsum("ij,njl->nil", state.W, d_dl0)
+
+    def unexplained(f: float) -> float:
+        cols = (whitened_d @ cyclic_group(1.0 / f, group.leg, group.curve_range).phi(p.ctx)).reshape(-1, 2 * (
+            6 if group.leg is None else 1))
+        cols = cols - state.Q @ (state.Q.T @ cols)
+        coef = np.linalg.lstsq(cols, state.r0, rcond=None)[0]
+        return float(np.sum((state.r0 - cols @ coef) ** 2))
+
+    f0 = 1.0 / group.period_mm
+    best = minimize_scalar(unexplained, bounds=(f0 - step, f0 + step), method="bounded",
+                           options={"xatol": step * 1e-3})
+    if not best.success or best.fun >= unexplained(f0):
+        return group
+    return cyclic_group(1.0 / float(best.x), group.leg, group.curve_range)
 
 
 @dataclasses.dataclass
@@ -220,6 +247,8 @@ def _select(p: Problem, candidates: list[TermGroup], alpha: float, n_boot: int, 
         log.info("selection_step", step=index, n_candidates=len(tests), chosen=None if best is None else best.group.key)
         if best is None:
             break
+        if best.group.period_mm is not None:
+            best = dataclasses.replace(best, group=_refine_period(p, state, d_dl0, best.group))
         sel.chosen.append(best.group)
         sel.chosen_tests[best.group.key] = best
         if best.group.period_mm is not None:
@@ -448,7 +477,8 @@ def _searched(rec: Recording, robot: Robot, ctx: EffectContext, *, alpha: float,
     `_select`."""
     p = Problem.of(rec, robot, ctx)
     library, untestable = library_groups(p.ctx, robot)
-    candidates = library + (generic_groups(p.ctx) if generic else [])
+    limits = (robot.leg_limits[0] - robot.l0, robot.leg_limits[1] - robot.l0)
+    candidates = library + (generic_groups(p.ctx, limits) if generic else [])
     geo = fit_model(p, [], label="geometry only")
     cv_geometry = model_state(p, geo, [])[0].cv_mm
     leg_res = leg_residuals(p, geo, [])

@@ -149,3 +149,55 @@ def test_the_variance_ratio_quantiles_are_the_f_distributions() -> None:
     assert variance_ratio_quantile(150, 16) == pytest.approx(stats.f.ppf(1 - tail, 150, 16))
     assert variance_ratio_quantile(150, 170, upper=False) == pytest.approx(stats.f.ppf(tail, 150, 170))
     assert variance_ratio_quantile(150, None) == pytest.approx(stats.chi2.ppf(1 - tail, 150) / 150)
+
+
+def _sessions_world(rng: np.random.Generator, concealed_mm: float, warmer_mm: float) -> tuple[np.ndarray, ...]:
+    """The linear world over two sessions, the model holding each leg's zero shift in the second (18 parameters):
+    a smooth error over the stroke concealed (`concealed_mm`), and leg 1 warmer by `warmer_mm` through the second
+    session (a drift's level, which its zero shift takes up whole). The truth of every shift is 0."""
+    s, J12, truth12, *_ = _world(rng, 0.0)
+    session = (np.arange(N) >= N // 2).astype(int)
+    shift = np.zeros((N, 6, 6))
+    shift[session == 1] = np.eye(6)
+    J = np.hstack([J12, shift.reshape(6 * N, 6)])
+    truth = np.concatenate([truth12, np.zeros(6)])
+    period = rng.uniform(0.3, 1.0, 6) * STROKE
+    concealed = concealed_mm * np.cos(2 * np.pi * s / period + rng.uniform(0, 2 * np.pi, 6))
+    concealed[:, 0] += warmer_mm * session
+    y = J @ truth + concealed.reshape(-1) + rng.normal(0, SIGMA, 6 * N)
+    estimate = np.linalg.lstsq(J, y, rcond=None)[0]
+    return s, J, session, truth, estimate, y - J @ estimate
+
+
+def _shift_z(drifting: list[bool] | None, warmer_mm: float, runs: int = 40) -> np.ndarray:
+    """(runs, 6) z of the zero shifts over recordings of `_sessions_world`."""
+    rng = np.random.default_rng(23)
+    out = []
+    for _ in range(runs):
+        s, J, session, truth, estimate, r = _sessions_world(rng, 0.03, warmer_mm)
+        noise = np.broadcast_to(SIGMA**2 * np.eye(6), (N, 6, 6))
+        cov, misfit = honest_covariance(J, r, noise, np.broadcast_to(np.eye(6), (N, 6, 6)), 3000.0 + s, session,
+                                        drifting=drifting)
+        assert misfit.incomplete
+        out.append(((estimate - truth) / np.sqrt(np.diag(cov)))[12:])
+    return np.abs(np.array(out))
+
+
+def test_a_discrepancy_nothing_measures_between_sessions_does_not_pad_the_zero_shifts() -> None:
+    """The model takes up every leg's constant in each session whole (offsets and zero shifts): a discrepancy constant
+    within a session never reaches the residual, so nothing sizes it. Carried on every leg, it pads the shifts; carried
+    only on a leg the model found drifting, the shifts of the others state their scatter."""
+    padded = _shift_z(None, 0.0)
+    honest = _shift_z([False] * 6, 0.0)
+    assert np.mean(honest <= 2) >= 0.9
+    assert np.median(honest) > 1.5 * np.median(padded)
+    assert np.median(honest) > 0.5
+
+
+def test_a_drifting_legs_zero_shift_carries_the_drifts_level() -> None:
+    """Leg 1 warmer through the second session: its zero shift takes the drift's level (truth 0). The session part is
+    what covers it, carried where the model found the leg drifting."""
+    flagged = _shift_z([True] + [False] * 5, 0.02)
+    unflagged = _shift_z([False] * 6, 0.02)
+    assert np.mean(flagged[:, 0] <= 2) >= 0.9
+    assert np.mean(unflagged[:, 0] <= 2) < 0.5

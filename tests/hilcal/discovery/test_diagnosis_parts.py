@@ -214,3 +214,31 @@ def test_generic_groups_cover_every_leg_and_variable(robot):
         phi = g.phi(ctx)
         assert phi.shape == (40, 6, g.n_params)
         assert np.all(phi[:, [i for i in range(6) if i != g.leg], :] == 0)
+
+
+def test_the_shared_stroke_quadratic_lends_a_bent_transducer_no_scale(robot):
+    """A transducer bent by 0.25 mm, level at both ends of its stroke (end-point linearity), on poses that reach one
+    end of the stroke more than the other. Fitted with a leg offset, a scale and the shared stroke quadratic, the
+    quadratic about the middle of the robot file's stroke limits leaves the scale near nothing; one about the middle
+    of the recorded strokes lends it the bow's slope over the offset between the two middles."""
+    lo, hi = robot.leg_limits[0] - robot.l0, robot.leg_limits[1] - robot.l0
+    poses = feasible_random_poses(robot, 600, np.random.default_rng(4))
+    low = np.all(EffectContext.at_poses(robot, poses).stroke_mm < lo + 0.75 * (hi - lo), axis=1)
+    ctx = EffectContext.at_poses(robot, poses[low][:60])
+    s = ctx.stroke_mm
+    bow = 0.25 * np.sin(np.pi * (s - lo) / (hi - lo))
+    recorded_middle = (s.min(axis=0) + s.max(axis=0)) / 2.0
+    assert np.min(np.abs(recorded_middle - (lo + hi) / 2.0)) > 5.0  # the poses are off the stroke's middle
+
+    def scale_ppm(groups: list) -> np.ndarray:
+        quadratic = next(g for g in groups if g.key == "all:stroke:quadratic").phi(ctx)
+        out = []
+        for i in range(6):
+            X = np.column_stack([np.ones(len(s)), s[:, i], quadratic[:, i, i]])
+            out.append(np.linalg.lstsq(X, bow[:, i], rcond=None)[0][1] * 1e6)
+        return np.abs(np.array(out))
+
+    at_limits = scale_ppm(generic_groups(ctx, (lo, hi)))
+    at_recorded = scale_ppm(generic_groups(ctx))
+    assert at_limits.max() < 10.0
+    assert at_recorded.min() > 10.0 * at_limits.max()
