@@ -236,3 +236,17 @@ def named_aliases(p: Any, chosen: list[TermGroup], chosen_tests: dict[str, Group
                 alias_why(g, t.group, p.ctx, cosine), now, poses, after, payload, t.group.key in chosen_keys,
             ))
     return tuple(out)
+
+
+def period_aliases(best: GroupTest, tests: list[GroupTest]) -> tuple[TermGroup, ...]:
+    """Other periods of a chosen cyclic group's leg, beyond the frequency resolution, that explain nearly as much
+    (within ALIAS_GAIN of its held-out gain): the shape's scale is then ambiguous."""
+    g = best.group
+    assert g.period_mm is not None and g.curve_range is not None
+    resolution = 1.0 / max(g.curve_range[1] - g.curve_range[0], 1e-9)
+    return tuple(
+        t.group for t in tests
+        if t.eligible and t.group.leg == g.leg and t.group.period_mm is not None
+        and abs(1.0 / t.group.period_mm - 1.0 / g.period_mm) > resolution
+        and t.press_gain_mm >= ALIAS_GAIN * best.press_gain_mm
+    )

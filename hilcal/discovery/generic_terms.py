@@ -24,6 +24,7 @@ from collections.abc import Callable
 
 import numpy as np
 from scipy.interpolate import BSpline
+from scipy.optimize import minimize_scalar
 
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.term_groups import GENERIC, TermGroup
@@ -153,6 +154,31 @@ def cyclic_group(period_mm: float, leg: int | None, stroke_range: tuple[float, f
         "a pinion or a drum with runout gives)", "stroke_cyclic", f"period {period_mm:.4g} mm", leg, 2, basis,
         curve, ["cyclic_sin_mm", "cyclic_cos_mm"], curve_range=stroke_range, unit="mm", period_mm=float(period_mm),
     )
+
+
+def refine_period(group: TermGroup, fit: EffectContext, whitened_d: np.ndarray, Q: np.ndarray, r0: np.ndarray
+                  ) -> TermGroup:
+    """A chosen cyclic group at the period that explains most within one scan step of it: least squares in the
+    frequency, with the current model's whitened residual r0, its columns' orthonormal basis Q and the whitened
+    d(residual)/d(leg length) (N, 6, 6). The scan steps by a quarter of the frequency resolution; a period off by
+    part of a step leaves a beat that grows along the stroke, which a scale or a bow then takes up."""
+    step = period_step(fit)
+    if group.period_mm is None or group.curve_range is None or step <= 0:
+        return group
+    width = 2 * (6 if group.leg is None else 1)
+
+    def unexplained(f: float) -> float:
+        cols = (whitened_d @ cyclic_group(1.0 / f, group.leg, group.curve_range).phi(fit)).reshape(-1, width)
+        cols = cols - Q @ (Q.T @ cols)
+        coef = np.linalg.lstsq(cols, r0, rcond=None)[0]
+        return float(np.sum((r0 - cols @ coef) ** 2))
+
+    f0 = 1.0 / group.period_mm
+    best = minimize_scalar(unexplained, bounds=(f0 - step, f0 + step), method="bounded",
+                           options={"xatol": step * 1e-3})
+    if not best.success or best.fun >= unexplained(f0):
+        return group
+    return cyclic_group(1.0 / float(best.x), group.leg, group.curve_range)
 
 
 def _cyclic_groups(fit: EffectContext) -> list[TermGroup]:

@@ -33,7 +33,7 @@ import structlog
 from threadpoolctl import threadpool_limits
 
 from hilcal.discovery import explain
-from hilcal.discovery.aliases import named_aliases, resolve
+from hilcal.discovery.aliases import named_aliases, period_aliases, resolve
 from hilcal.discovery.context import EffectContext
 from hilcal.discovery.corrections import compensation_set
 from hilcal.discovery.findings import (
@@ -62,7 +62,7 @@ from hilcal.discovery.fitting import (
     unknown_terms,
     verify_accuracy,
 )
-from hilcal.discovery.generic_terms import cyclic_group, generic_groups, period_step
+from hilcal.discovery.generic_terms import generic_groups, refine_period
 from hilcal.discovery.naming import named_effects
 from hilcal.discovery.noise import NoiseLevel, noise_yardstick, sphere_noise_covariance, sphere_sources
 from hilcal.discovery.physics import library_groups
@@ -76,7 +76,7 @@ from hilcal.discovery.screen import (
     unknown_rows,
     unknown_sentence,
 )
-from hilcal.discovery.selection import GroupTest, ModelState, assess, choose
+from hilcal.discovery.selection import GroupTest, assess, choose
 from hilcal.discovery.shapes import shapes_for
 from hilcal.discovery.stations import with_stations
 from hilcal.discovery.term_groups import GENERIC, LIBRARY, TermGroup, stack_phi
@@ -96,51 +96,6 @@ DEFAULT_ALPHA = 0.02
 families share it); step k of the search uses alpha / k."""
 WIRING = "leg_wiring"
 """The effect name of a set-up fault in the leg readings' order or direction (hilcal.wiring)."""
-ALIAS_GAIN = 0.9
-"""Another setting of the same leg and variable (a period, a knot count) with 90 % of the chosen one's held-out
-gain makes the shape's scale ambiguous."""
-
-
-def _period_aliases(best: GroupTest, tests: list[GroupTest]) -> tuple[TermGroup, ...]:
-    """Other periods of the same leg, beyond the frequency resolution, that explain nearly as much."""
-    g = best.group
-    assert g.period_mm is not None and g.curve_range is not None
-    resolution = 1.0 / max(g.curve_range[1] - g.curve_range[0], 1e-9)
-    return tuple(
-        t.group for t in tests
-        if t.eligible and t.group.leg == g.leg and t.group.period_mm is not None
-        and abs(1.0 / t.group.period_mm - 1.0 / g.period_mm) > resolution
-        and t.press_gain_mm >= ALIAS_GAIN * best.press_gain_mm
-    )
-
-
-def _refine_period(p: Problem, state: ModelState, d_dl0: np.ndarray, group: TermGroup) -> TermGroup:
-    """The chosen cyclic group at the period that explains most within one scan step of it (least squares in the
-    frequency, the other terms held at the current model's linearization). The scan steps by a quarter of the
-    frequency resolution; a period off by part of a step leaves a beat that grows along the stroke, which a scale
-    or a bow then takes up."""
-    from scipy.optimize import minimize_scalar
-
-    step = period_step(p.ctx)
-    if group.period_mm is None or group.curve_range is None or step <= 0:
-        return group
-    whitened_d = np.einsum("ij,njl->nil", state.W, d_dl0)
-
-    def unexplained(f: float) -> float:
-        cols = (whitened_d @ cyclic_group(1.0 / f, group.leg, group.curve_range).phi(p.ctx)).reshape(-1, 2 * (
-            6 if group.leg is None else 1))
-        cols = cols - state.Q @ (state.Q.T @ cols)
-        coef = np.linalg.lstsq(cols, state.r0, rcond=None)[0]
-        return float(np.sum((state.r0 - cols @ coef) ** 2))
-
-    f0 = 1.0 / group.period_mm
-    best = minimize_scalar(unexplained, bounds=(f0 - step, f0 + step), method="bounded",
-                           options={"xatol": step * 1e-3})
-    if not best.success or best.fun >= unexplained(f0):
-        return group
-    return cyclic_group(1.0 / float(best.x), group.leg, group.curve_range)
-
-
 @dataclasses.dataclass
 class _Selection:
     """The outcome of forward selection with backward elimination."""
@@ -248,11 +203,12 @@ def _select(p: Problem, candidates: list[TermGroup], alpha: float, n_boot: int, 
         if best is None:
             break
         if best.group.period_mm is not None:
-            best = dataclasses.replace(best, group=_refine_period(p, state, d_dl0, best.group))
+            whitened_d = np.einsum("ij,njl->nil", state.W, d_dl0)
+            best = dataclasses.replace(best, group=refine_period(best.group, p.ctx, whitened_d, state.Q, state.r0))
         sel.chosen.append(best.group)
         sel.chosen_tests[best.group.key] = best
         if best.group.period_mm is not None:
-            sel.alternatives[best.group.key] = _period_aliases(best, tests)
+            sel.alternatives[best.group.key] = period_aliases(best, tests)
         removed = []
         while len(sel.chosen) > 1:
             drops = _drop_tests(p, sel.chosen, alpha, n_boot, seed + 100 * index, sel.fit)
