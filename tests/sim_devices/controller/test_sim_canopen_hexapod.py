@@ -256,7 +256,8 @@ def test_pdo_setpoints_and_actual_lengths(device: Device, hx6: canopen.RemoteNod
         return np.array([hx6.tpdo[2 + leg // 2][leg % 2].raw for leg in range(6)])
 
     wait_for(lambda: np.allclose(tpdo_lengths(), target, atol=0.006) and hx6.tpdo[1][1].raw == 99)
-    assert hx6.tpdo[1][0].raw & 0x0400  # statusword: target reached
+    # statusword bit 10, target reached: its TPDO follows the lengths' on its own change, so it is waited for too
+    wait_for(lambda: bool(hx6.tpdo[1][0].raw & 0x0400))
     hx6.nmt.state = "PRE-OPERATIONAL"
 
 
