@@ -115,26 +115,31 @@ def _spline_groups(variable: str, leg: int, fit: EffectContext, knot_counts: tup
     return groups
 
 
-def period_step(fit: EffectContext) -> float:
-    """The scan's step in frequency (1/mm): a quarter of the Rayleigh resolution, coarser on long recordings; 0
-    when the strokes are too few to scan."""
+def _frequency_scan(fit: EffectContext) -> tuple[float, float, float] | None:
+    """(lowest, highest frequency in 1/mm, step) of the period scan; None when the strokes are too few to scan."""
     span = float(np.min(np.ptp(fit.stroke_mm, axis=0)))
     distinct = min(np.unique(np.round(fit.stroke_mm[:, i], 6)).size for i in range(6))
     if span <= 0 or distinct < MIN_DISTINCT_VALUES:
-        return 0.0
+        return None
     f_min, f_max = MIN_CYCLES / span, distinct / span
-    return max(1.0 / (CYCLIC_OVERSAMPLING * span), (f_max - f_min) / MAX_PERIODS)
+    return f_min, f_max, max(1.0 / (CYCLIC_OVERSAMPLING * span), (f_max - f_min) / MAX_PERIODS)
+
+
+def period_step(fit: EffectContext) -> float:
+    """The scan's step in frequency (1/mm): a quarter of the Rayleigh resolution, coarser on long recordings; 0
+    when the strokes are too few to scan."""
+    scan = _frequency_scan(fit)
+    return 0.0 if scan is None else scan[2]
 
 
 def _periods(fit: EffectContext) -> np.ndarray:
     """Scanned periods (mm): from 2/3 of the stroke range (1.5 cycles; a longer 'period' is a smooth bow, which
     the splines describe) down to the mean spacing of the recorded strokes."""
-    step = period_step(fit)
-    if step <= 0:
+    scan = _frequency_scan(fit)
+    if scan is None:
         return np.zeros(0)
-    span = float(np.min(np.ptp(fit.stroke_mm, axis=0)))
-    distinct = min(np.unique(np.round(fit.stroke_mm[:, i], 6)).size for i in range(6))
-    return 1.0 / np.arange(MIN_CYCLES / span, distinct / span + 1e-12, step)
+    f_min, f_max, step = scan
+    return 1.0 / np.arange(f_min, f_max + 1e-12, step)
 
 
 def cyclic_group(period_mm: float, leg: int | None, stroke_range: tuple[float, float]) -> TermGroup:
